@@ -1,0 +1,50 @@
+# Set-up and entry points. `make demo` and `make test` install whatever is missing on a fresh
+# Debian bookworm machine (as root, or with sudo), then run.
+SHELL := /bin/bash
+PY := /usr/bin/python3
+VENV := .venv
+VPY := $(VENV)/bin/python
+NP ?= 2
+APT_PACKAGES := python3-dolfinx-real python3-ufl python3-petsc4py python3-mpi4py python3-numpy \
+	python3-meshio python3-h5py python3-scipy python3-matplotlib python3-pytest python3-venv \
+	python3-setuptools python3-tqdm python3-hypothesis openmpi-bin
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+
+# OpenMPI refuses to run as root without these; CI runs as root.
+export OMPI_ALLOW_RUN_AS_ROOT := 1
+export OMPI_ALLOW_RUN_AS_ROOT_CONFIRM := 1
+export OMPI_MCA_rmaps_base_oversubscribe := 1
+export DEBIAN_FRONTEND := noninteractive
+
+.PHONY: install system-packages demo test test-serial test-mpi clean
+
+system-packages:
+	@missing=""; for p in $(APT_PACKAGES); do \
+	  dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "install ok installed" || missing="$$missing $$p"; \
+	done; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing Debian packages:$$missing"; \
+	  $(SUDO) apt-get update -qq < /dev/null && \
+	  $(SUDO) apt-get install -y -qq --no-install-recommends $$missing < /dev/null; \
+	fi
+
+$(VENV)/.installed: pyproject.toml | system-packages
+	$(PY) -m venv --system-site-packages $(VENV)
+	$(VPY) -m pip install --quiet --no-build-isolation --no-deps --no-index -e .
+	touch $@
+
+install: system-packages $(VENV)/.installed
+
+demo: install
+	$(VPY) demos/demo_ziegler.py
+
+test-serial: install
+	$(VPY) -m pytest -q tests
+
+test-mpi: install
+	mpirun -n $(NP) $(VPY) -m pytest -q -m mpi tests
+
+test: test-serial test-mpi
+
+clean:
+	rm -rf $(VENV) out_* build *.egg-info

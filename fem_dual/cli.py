@@ -1,0 +1,137 @@
+"""Command line: `fem-dual run SCENE ...` and `fem-dual scenes`.
+
+Exit status: 0 success, 2 bad input (one line on stderr naming the value), 3 a failed solve (the
+slabs completed before it are kept, in the output files and in the JSON with status "failed").
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from typing import List, Optional, Sequence
+
+from mpi4py import MPI
+
+from fem_dual.config import RunConfig
+from fem_dual.driver import RunResult, run
+from fem_dual.errors import InputError, SolveError
+from fem_dual.mpi import print0
+from fem_dual.scenes import SCENES
+
+__all__ = ["main", "build_parser"]
+
+# Options whose value may start with "-" (negative numbers): "--x0 -1,2" is joined to "--x0=-1,2".
+_VALUE_OPTIONS = ("--T", "--x0", "--v0", "--param", "--cells", "--degree", "--slabs")
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # one line, exit 2 (by the caller), no usage dump
+        raise InputError(message)
+
+
+def _key_value(text: str, what: str) -> tuple:
+    key, sep, value = text.partition("=")
+    if not sep or not key.strip():
+        raise InputError(f"{what} {text!r} is not of the form NAME=VALUE")
+    return key.strip(), value.strip()
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="fem-dual", description="Particle dynamics under curl forces through a "
+                     "dual variational principle, solved in space-time with FEniCSx.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub.required = True
+    r = sub.add_parser("run", help="solve one scene and compare it with its reference")
+    r.add_argument("scene", metavar="SCENE", help=f"one of: {', '.join(SCENES)}")
+    r.add_argument("--T", help="final time (default: the scene's)")
+    r.add_argument("--cells", default="100", help="time cells per slab (default 100)")
+    r.add_argument("--degree", default="2", help="polynomial degree of the dual fields (default 2)")
+    r.add_argument("--slabs", default="1", help="number of equal time slabs (default 1)")
+    r.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                   help="scene parameter (repeatable); matrices as a11,a12,... or a scalar")
+    r.add_argument("--x0", help="initial position a,b,...")
+    r.add_argument("--v0", help="initial velocity a,b,...")
+    r.add_argument("--out", help="write XDMF output into this directory")
+    r.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    r.add_argument("--petsc-option", action="append", default=[], metavar="KEY=VALUE",
+                   help="PETSc option under the solver prefix dual_<scene>_, e.g. ksp_type=cg")
+    sub.add_parser("scenes", help="list the scenes, their parameters and defaults")
+    return parser
+
+
+def _join_negative_values(argv: Sequence[str]) -> List[str]:
+    out: List[str] = []
+    i = 0
+    while i < len(argv):
+        arg = argv[i]
+        if arg in _VALUE_OPTIONS and i + 1 < len(argv) and argv[i + 1].startswith("-"):
+            out.append(f"{arg}={argv[i + 1]}")
+            i += 2
+        else:
+            out.append(arg)
+            i += 1
+    return out
+
+
+def _summary(result: RunResult) -> str:
+    e, h, tm = result.error, result.hamiltonian, result.timings
+    fin = result.final
+
+    def fmt(values) -> str:
+        return "[" + ", ".join(f"{v:.10g}" for v in values) + "]"
+
+    lines = [f"fem-dual run {result.scene}: T={result.T:g} cells={result.cells} "
+             f"degree={result.degree} slabs={result.slabs} ({result.dofs_per_slab} dofs per slab)"]
+    if fin["t"] is not None:
+        lines += [f"  final   t={fin['t']:g}  x={fmt(fin['x'])}  v={fmt(fin['v'])}",
+                  f"  error   x_max={e['x_max']:.3e}  v_max={e['v_max']:.3e}  "
+                  f"final={e['final']:.3e}",
+                  f"  H_d     min={h['min']:.6g}  max={h['max']:.6g}  "
+                  f"drift per slab={h['drift']:.3e}"]
+    lines.append(f"  time    total {tm['total_s']:.3f} s (compile {tm['compile_s']:.3f} s, "
+                 f"solve {tm['solve_s']:.3f} s)")
+    if result.output_files:
+        lines.append("  output  " + ", ".join(result.output_files))
+    return "\n".join(lines)
+
+
+def _list_scenes() -> str:
+    lines = []
+    for name, cls in SCENES.items():
+        defaults = cls()
+        params = ", ".join(f"{k}={v}" for k, v in defaults.parameters().items())
+        lines.append(f"{name}: {cls.summary}\n  n={cls.n}  T={cls.default_T:g}  "
+                     f"x0={cls.default_x0}  v0={cls.default_v0}\n  parameters: {params}")
+    return "\n".join(lines)
+
+
+def main(argv: Optional[Sequence[str]] = None, comm: MPI.Comm = MPI.COMM_WORLD) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        args = build_parser().parse_args(_join_negative_values(argv))
+        if args.command == "scenes":
+            print0(comm, _list_scenes())
+            return 0
+        params = dict(_key_value(p, "--param") for p in args.param)
+        petsc = dict(_key_value(p, "--petsc-option") for p in args.petsc_option)
+        config = RunConfig.create(args.scene, params, T=args.T, cells=args.cells,
+                                  degree=args.degree, slabs=args.slabs, x0=args.x0, v0=args.v0,
+                                  out=args.out, petsc=petsc)
+        result = run(config, comm)
+    except InputError as exc:
+        print0(comm, f"fem-dual: error: {exc}", file=sys.stderr)
+        return InputError.exit_status
+    except SolveError as exc:
+        print0(comm, f"fem-dual: solve failed: {exc}", file=sys.stderr)
+        if exc.partial is not None and args.json:
+            print0(comm, json.dumps(exc.partial.to_dict(), allow_nan=False))
+        return SolveError.exit_status
+    if args.json:
+        print0(comm, json.dumps(result.to_dict(), allow_nan=False))
+    else:
+        print0(comm, _summary(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

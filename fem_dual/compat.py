@@ -1,0 +1,49 @@
+"""Everything that depends on DOLFINx 0.5.2 specifics lives here, and nowhere else."""
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import ufl
+from dolfinx import fem
+
+__all__ = ["quiet_jit_logging", "CellPointEvaluator", "vector_space", "constant"]
+
+
+def _drop_info(record: logging.LogRecord) -> bool:
+    return record.levelno >= logging.WARNING
+
+
+def quiet_jit_logging() -> None:
+    """The JIT of 0.5.2 builds through setuptools, which resets the root logger to INFO and logs
+    every compiler call; a filter on the root logger survives that reset."""
+    root = logging.getLogger()
+    if _drop_info not in root.filters:
+        root.addFilter(_drop_info)
+
+
+def vector_space(msh, degree: int, dim: int) -> fem.FunctionSpace:
+    """One blocked Lagrange space of `dim` components (0.5.2: ufl.VectorElement)."""
+    return fem.FunctionSpace(msh, ufl.VectorElement("Lagrange", msh.ufl_cell(), degree, dim=dim))
+
+
+def constant(msh, value) -> fem.Constant:
+    """A fem.Constant of float64 whatever the input's dtype (0.5.2 rejects integer arrays)."""
+    return fem.Constant(msh, np.asarray(value, dtype=np.float64))
+
+
+class CellPointEvaluator:
+    """Evaluates a UFL expression at fixed reference points of given cells.
+
+    0.5.2's `fem.Expression.eval(cells)` returns a flat (cells, points * value_size) array; this
+    reshapes it to (cells, points, value_size).
+    """
+
+    def __init__(self, expr: ufl.core.expr.Expr, ref_points: np.ndarray):
+        self._points = np.asarray(ref_points, dtype=np.float64).reshape(-1, 1)
+        self._expr = fem.Expression(expr, self._points)
+        self.value_size = self._expr.value_size
+
+    def __call__(self, cells: np.ndarray) -> np.ndarray:
+        values = self._expr.eval(np.asarray(cells, dtype=np.int32))
+        return values.reshape(len(cells), self._points.shape[0], self.value_size)

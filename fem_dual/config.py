@@ -1,0 +1,83 @@
+"""A run's configuration, validated in one place before anything is computed or written."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, Mapping, Optional, Sequence, Union
+
+import numpy as np
+
+from fem_dual.errors import InputError
+from fem_dual.scenes import Scene, get_scene
+from fem_dual.scenes.base import parse_number, parse_vector
+
+__all__ = ["RunConfig", "MAX_VERTICES", "MAX_DEGREE"]
+
+MAX_VERTICES = 20_000_000  # over the whole run: the vertex arrays of the JSON must fit in memory
+MAX_DEGREE = 10  # equispaced Lagrange bases beyond this are too ill-conditioned to be useful
+
+Number = Union[int, float, str]
+
+
+def _positive_int(name: str, value: Number) -> int:
+    text = str(value).strip()
+    try:
+        as_float = float(text)
+    except ValueError:
+        raise InputError(f"{name}={text!r} is not a whole number") from None
+    if not math.isfinite(as_float) or as_float != int(as_float):
+        raise InputError(f"{name}={text!r} is not a whole number")
+    if int(as_float) < 1:
+        raise InputError(f"{name}={text!r} must be at least 1")
+    return int(as_float)
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """Everything a run needs. Build it with `RunConfig.create`, which validates."""
+
+    scene: Scene
+    T: float
+    cells: int
+    degree: int
+    slabs: int
+    x0: np.ndarray
+    v0: np.ndarray
+    out: Optional[Path] = None
+    petsc: Dict[str, str] = field(default_factory=dict)
+
+    @classmethod
+    def create(cls, scene: Union[str, Scene], params: Optional[Mapping[str, object]] = None, *,
+               T: Optional[Number] = None, cells: Number = 100, degree: Number = 2,
+               slabs: Number = 1, x0: Optional[Union[str, Sequence[float]]] = None,
+               v0: Optional[Union[str, Sequence[float]]] = None,
+               out: Optional[Union[str, Path]] = None,
+               petsc: Optional[Mapping[str, str]] = None) -> "RunConfig":
+        """Validate every input; raises InputError naming the first bad value."""
+        if isinstance(scene, str):
+            scene = get_scene(scene).from_params(params)
+        elif params:
+            raise InputError("give parameters with the scene name, not with a Scene object")
+        T_value = scene.default_T if T is None else parse_number("T", T)
+        if not T_value > 0:
+            raise InputError(f"T={T!r} must be positive")
+        cells_ = _positive_int("cells", cells)
+        degree_ = _positive_int("degree", degree)
+        slabs_ = _positive_int("slabs", slabs)
+        if degree_ > MAX_DEGREE:
+            raise InputError(f"degree={degree_} is too large (at most {MAX_DEGREE})")
+        if cells_ * slabs_ > MAX_VERTICES:
+            raise InputError(f"cells={cells_} x slabs={slabs_} = {cells_ * slabs_} time cells is "
+                             f"too large (at most {MAX_VERTICES})")
+        n = scene.n
+        x0_ = parse_vector("x0", scene.default_x0 if x0 is None else x0, n)
+        v0_ = parse_vector("v0", scene.default_v0 if v0 is None else v0, n)
+        petsc_ = {}
+        for key, value in (petsc or {}).items():
+            key = str(key).lstrip("-")
+            if not key or any(ch.isspace() for ch in key):
+                raise InputError(f"PETSc option {key!r} is not an option name")
+            petsc_[key] = str(value)
+        return cls(scene, T_value, cells_, degree_, slabs_, x0_, v0_,
+                   None if out is None else Path(out), petsc_)

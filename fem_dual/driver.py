@@ -1,0 +1,222 @@
+"""The time-staging slab driver, used by every scene.
+
+Each slab starts from the primal state recovered at the end of the previous one; that state is also
+the slab's constant base state (xbar, vbar) of H. Forms are compiled once; only fem.Constants change
+between slabs. Results live on rank 0 and are broadcast at the end, so every rank returns the same
+RunResult.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Optional
+
+import numpy as np
+from mpi4py import MPI
+
+from fem_dual.compat import quiet_jit_logging
+from fem_dual.config import RunConfig
+from fem_dual.errors import InputError, SolveError
+from fem_dual.mpi import bcast
+from fem_dual.output import OutputDir, check_output_dir, XdmfSeries, write_polyline
+from fem_dual.problem import SlabProblem
+from fem_dual.recovery import VertexSampler, VertexValues
+from fem_dual.solvers import LinearSlabSolver, solver_prefix
+from meshes import partition
+
+__all__ = ["RunResult", "run"]
+
+
+@dataclass
+class RunResult:
+    """What a run computed (the JSON object of `fem-dual run --json`)."""
+
+    scene: str
+    parameters: Dict[str, Any]
+    T: float
+    cells: int
+    degree: int
+    slabs: int
+    x0: List[float]
+    v0: List[float]
+    dofs_per_slab: int
+    t: np.ndarray
+    x: np.ndarray
+    v: np.ndarray
+    error: Dict[str, float]
+    hamiltonian: Dict[str, Any]
+    timings: Dict[str, float]
+    solver: Dict[str, Any]
+    slab_lengths: List[float]
+    status: str = "ok"
+    message: str = ""
+    output_files: List[str] = field(default_factory=list)
+
+    @property
+    def final(self) -> Dict[str, List[float]]:
+        if len(self.t) == 0:
+            return {"t": None, "x": None, "v": None}
+        return {"t": float(self.t[-1]), "x": self.x[-1].tolist(), "v": self.v[-1].tolist()}
+
+    def to_dict(self) -> Dict[str, Any]:
+        return {
+            "scene": self.scene, "parameters": self.parameters, "T": self.T, "cells": self.cells,
+            "degree": self.degree, "slabs": self.slabs, "x0": self.x0, "v0": self.v0,
+            "status": self.status, "message": self.message,
+            "dofs_per_slab": self.dofs_per_slab, "slab_lengths": self.slab_lengths,
+            "t": self.t.tolist(), "x": self.x.tolist(), "v": self.v.tolist(),
+            "final": self.final, "error": self.error, "hamiltonian": self.hamiltonian,
+            "solver": self.solver, "timings": self.timings, "output_files": self.output_files,
+        }
+
+
+class _Accumulator:
+    """Vertex arrays of the whole run and their errors against the reference (rank 0 only)."""
+
+    def __init__(self, config: RunConfig):
+        self.flow = config.scene.reference(config.x0, config.v0)
+        self.t: List[np.ndarray] = []
+        self.x: List[np.ndarray] = []
+        self.v: List[np.ndarray] = []
+        self.err_x = 0.0
+        self.err_v = 0.0
+        self.final_err = (float("nan"), float("nan"))
+        self.ham: List[Dict[str, float]] = []
+        self.reference_s = 0.0
+
+    def add(self, t0: float, dt: float, vals: VertexValues, first: bool) -> None:
+        keep = slice(0 if first else 1, None)  # each slab junction once: the end of the slab before
+        t = t0 + dt * vals.s[keep]
+        x, v = vals.x[keep], vals.v[keep]
+        tic = time.perf_counter()
+        x_ref, v_ref = self.flow(t)
+        self.reference_s += time.perf_counter() - tic
+        ex, ev = np.abs(x - x_ref).max(axis=1), np.abs(v - v_ref).max(axis=1)
+        self.err_x, self.err_v = max(self.err_x, ex.max()), max(self.err_v, ev.max())
+        self.final_err = (float(ex[-1]), float(ev[-1]))
+        self.t.append(t), self.x.append(x), self.v.append(v)
+        h = vals.hamiltonian
+        scale = max(np.abs(h).max(), np.finfo(float).tiny)
+        self.ham.append({"min": float(h.min()), "max": float(h.max()),
+                         "drift": float((h.max() - h.min()) / scale)})
+
+    def arrays(self, n: int):
+        if not self.t:
+            return np.zeros(0), np.zeros((0, n)), np.zeros((0, n))
+        return np.concatenate(self.t), np.concatenate(self.x), np.concatenate(self.v)
+
+    def hamiltonian(self) -> Dict[str, Any]:
+        if not self.ham:
+            return {"min": None, "max": None, "drift": None, "per_slab": []}
+        return {"min": min(h["min"] for h in self.ham), "max": max(h["max"] for h in self.ham),
+                "drift": max(h["drift"] for h in self.ham), "per_slab": self.ham}
+
+    def error(self) -> Dict[str, Optional[float]]:
+        if not self.t:
+            return {"x_max": None, "v_max": None, "final": None, "final_x": None, "final_v": None}
+        return {"x_max": float(self.err_x), "v_max": float(self.err_v),
+                "final": max(self.final_err), "final_x": self.final_err[0],
+                "final_v": self.final_err[1]}
+
+
+def _make_solver(problem: SlabProblem, config: RunConfig):
+    prefix = solver_prefix(config.scene.name)
+    if config.scene.linear:
+        return LinearSlabSolver(problem, prefix, config.petsc)
+    raise NotImplementedError(f"scene {config.scene.name} needs the nonlinear solver")
+
+
+def run(config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD) -> RunResult:
+    """Solve the dual problem slab by slab, recover the primal motion, compare with the reference.
+
+    Raises:
+        SolveError: a slab failed; `partial` holds the result of the slabs completed before it,
+            whose output files (if any) are complete.
+    """
+    quiet_jit_logging()
+    tic = time.perf_counter()
+    root = comm.rank == 0
+    if config.out is not None:  # before any work: a bad --out is bad input, on every rank
+        problem_text = None
+        if root:
+            try:
+                check_output_dir(config.out)
+            except InputError as exc:
+                problem_text = str(exc)
+        problem_text = bcast(comm, problem_text)
+        if problem_text:
+            raise InputError(problem_text)
+    scene = config.scene
+    problem = SlabProblem(scene, config.degree, config.cells, comm)
+    solver = _make_solver(problem, config)
+    tc = time.perf_counter()
+    sampler = VertexSampler(problem, with_dual=config.out is not None)
+    compile_s = solver.compile_s + time.perf_counter() - tc
+
+    acc = _Accumulator(config) if root else None
+    outdir = OutputDir(config.out) if (root and config.out is not None) else None
+    series: Optional[XdmfSeries] = None
+    timings = {"compile_s": compile_s, "solve_s": 0.0, "recovery_s": 0.0, "output_s": 0.0}
+    lengths: List[float] = []
+    failure: Optional[SolveError] = None
+    state = (config.x0, config.v0)
+
+    for k, (t0, dt) in enumerate(partition(config.T, config.slabs)):
+        problem.set_slab(state[0], state[1], dt)
+        t1 = time.perf_counter()
+        try:
+            solver.solve()
+        except SolveError as exc:
+            failure = SolveError(f"slab {k} (t = {t0:g} .. {t0 + dt:g}): {exc}", slab=k)
+            break
+        t2 = time.perf_counter()
+        vals = sampler()
+        finite = bcast(comm, vals.finite() if root else None)
+        timings["solve_s"] += t2 - t1
+        timings["recovery_s"] += time.perf_counter() - t2
+        if not finite:
+            failure = SolveError(f"slab {k} (t = {t0:g} .. {t0 + dt:g}): the recovered state is "
+                                 "not finite; try more slabs or cells", slab=k)
+            break
+        if root:
+            acc.add(t0, dt, vals, first=(k == 0))
+            if outdir is not None:
+                t3 = time.perf_counter()
+                if series is None:
+                    series = XdmfSeries(outdir.file(f"{scene.name}.xdmf"), dt * vals.s)
+                series.write(t0, {"t": t0 + dt * vals.s, "xi": vals.xi, "eta": vals.eta,
+                                  "x_hat": vals.x, "v_hat": vals.v,
+                                  "hamiltonian": vals.hamiltonian})
+                timings["output_s"] += time.perf_counter() - t3
+        lengths.append(dt)
+        state = bcast(comm, (vals.x[-1].copy(), vals.v[-1].copy()) if root else None)
+
+    result = None
+    if root:
+        t, x, v = acc.arrays(scene.n)
+        files: List[str] = []
+        if outdir is not None:
+            t3 = time.perf_counter()
+            if series is not None:
+                series.close()
+                write_polyline(outdir.file(f"{scene.name}_trajectory.xdmf"), x,
+                               {"t": t, "v_hat": v})
+            files = [str(p) for p in outdir.commit()]
+            timings["output_s"] += time.perf_counter() - t3
+        timings["reference_s"] = acc.reference_s
+        timings["total_s"] = time.perf_counter() - tic
+        result = RunResult(
+            scene=scene.name, parameters=scene.parameters(), T=config.T, cells=config.cells,
+            degree=config.degree, slabs=config.slabs, x0=config.x0.tolist(),
+            v0=config.v0.tolist(), dofs_per_slab=problem.num_dofs, t=t, x=x, v=v,
+            error=acc.error(), hamiltonian=acc.hamiltonian(), timings=timings,
+            solver={"kind": "ksp", "prefix": solver_prefix(scene.name),
+                    "ksp_iterations": list(solver.iterations)},
+            slab_lengths=lengths, output_files=files)
+        if failure is not None:
+            result.status, result.message = "failed", str(failure)
+    result = bcast(comm, result)
+    if failure is not None:
+        failure.partial = result
+        raise failure
+    return result

@@ -1,0 +1,40 @@
+"""MPI helpers: rank-0 printing, one allreduce helper, gathers and broadcasts."""
+from __future__ import annotations
+
+import sys
+from typing import Any
+
+import numpy as np
+from mpi4py import MPI
+
+__all__ = ["allreduce", "gather_rows", "bcast", "print0", "is_root"]
+
+
+def is_root(comm: MPI.Comm) -> bool:
+    return comm.rank == 0
+
+
+def print0(comm: MPI.Comm, *args: Any, file=None, **kwargs: Any) -> None:
+    """Print on rank 0 only."""
+    if comm.rank == 0:
+        print(*args, file=file if file is not None else sys.stdout, **kwargs)
+
+
+def allreduce(comm: MPI.Comm, value: Any, op: str = "sum") -> Any:
+    """The one helper through which global numbers are reduced (sum, max, min, land, lor)."""
+    ops = {"sum": MPI.SUM, "max": MPI.MAX, "min": MPI.MIN, "land": MPI.LAND, "lor": MPI.LOR}
+    return comm.allreduce(value, op=ops[op])
+
+
+def gather_rows(comm: MPI.Comm, rows: np.ndarray) -> "np.ndarray | None":
+    """Concatenate the 2D arrays of all ranks on rank 0 (None elsewhere)."""
+    parts = comm.gather(np.ascontiguousarray(rows), root=0)
+    if comm.rank != 0:
+        return None
+    parts = [p for p in parts if p.size]
+    return np.concatenate(parts, axis=0) if parts else np.zeros((0, rows.shape[1]))
+
+
+def bcast(comm: MPI.Comm, obj: Any) -> Any:
+    """Broadcast from rank 0."""
+    return comm.bcast(obj, root=0)

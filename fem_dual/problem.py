@@ -1,0 +1,92 @@
+"""The dual action of one slab, built once per run from a scene's forms.
+
+Unknown: w = (xi, eta) in one blocked Lagrange space of degree p on the reference slab mesh
+s in [0, 1] (xi = first n components, eta = the next n). Physical time t = t0 + dt s, so
+d/dt = (1/dt) d/ds and dt enters the forms as a fem.Constant, like the initial state (x0, v0) and
+the base state (xbar, vbar) of H: changing slabs never recompiles a form.
+
+    S[w] = int_0^1 L_d(xi, eta, xi', eta') dt ds - x0.xi(0) - (M v0).eta(0),
+    residual = dS/dw [w_test],  Jacobian = d residual/dw [w_trial],   xi(1) = eta(1) = 0.
+"""
+from __future__ import annotations
+
+from typing import Dict
+
+import numpy as np
+import ufl
+from dolfinx import fem
+from mpi4py import MPI
+
+from fem_dual.compat import constant, vector_space
+from fem_dual.scenes.base import Scene
+from forms.predual import boundary_term, dual_hamiltonian, predual_lagrangian
+from meshes import START, slab_mesh
+
+__all__ = ["SlabProblem"]
+
+
+class SlabProblem:
+    """UFL of one slab's dual action and of the DtP image, with the constants that change per slab.
+
+    Args:
+        scene: the validated scene.
+        degree: polynomial degree of the dual fields.
+        cells: number of time cells per slab.
+        comm: communicator the time mesh is distributed over.
+    """
+
+    def __init__(self, scene: Scene, degree: int, cells: int, comm: MPI.Comm = MPI.COMM_WORLD):
+        self.scene, self.degree, self.comm = scene, degree, comm
+        n = scene.n
+        self.n = n
+        self.mesh = slab_mesh(comm, cells)
+        msh = self.mesh.msh
+        self.W = vector_space(msh, degree, 2 * n)
+        self.w = fem.Function(self.W, name="dual")
+
+        # Run constants (scene parameters) and per-slab constants.
+        self.c: Dict[str, fem.Constant] = {k: constant(msh, v) for k, v in scene.constants().items()}
+        zero = np.zeros(n)
+        self.dt = constant(msh, 1.0)
+        self.x0, self.v0 = constant(msh, zero), constant(msh, zero)
+        self.xbar, self.vbar = constant(msh, zero), constant(msh, zero)
+
+        w = self.w
+        self.xi = ufl.as_vector([w[i] for i in range(n)])
+        self.eta = ufl.as_vector([w[n + i] for i in range(n)])
+        self.dxi = ufl.as_vector([w[i].dx(0) for i in range(n)]) / self.dt
+        self.deta = ufl.as_vector([w[n + i].dx(0) for i in range(n)]) / self.dt
+
+        f = scene.forms
+        c = self.c
+        M = c["M"]
+        self.xhat, self.vhat = f.dtp_map(self.xi, self.eta, self.dxi, self.deta, self.xbar,
+                                         self.vbar, c)
+        force = lambda x: f.force(x, c)  # noqa: E731
+        aux = lambda dx_, dv_: f.aux_potential(dx_, dv_, c)  # noqa: E731
+        L_d = predual_lagrangian(self.xhat, self.vhat, self.xi, self.eta, self.dxi, self.deta, M,
+                                 force, aux, self.xbar, self.vbar)
+        self.hamiltonian = dual_hamiltonian(self.xhat, self.vhat, self.xi, self.eta, force, aux,
+                                            self.xbar, self.vbar)
+
+        qdeg = scene.quadrature_degree(degree)
+        dx = ufl.Measure("dx", domain=msh, metadata={"quadrature_degree": qdeg})
+        ds = ufl.Measure("ds", domain=msh, subdomain_data=self.mesh.tags)
+        self.action = L_d * self.dt * dx + boundary_term(self.xi, self.eta, M, self.x0,
+                                                         self.v0) * ds(START)
+        self.residual = ufl.derivative(self.action, w, ufl.TestFunction(self.W))
+        self.jacobian = ufl.derivative(self.residual, w, ufl.TrialFunction(self.W))
+
+        end_dofs = fem.locate_dofs_topological(self.W, 0, self.mesh.end_vertices)
+        self.bcs = [fem.dirichletbc(np.zeros(2 * n), end_dofs, self.W)]
+
+    @property
+    def num_dofs(self) -> int:
+        imap = self.W.dofmap.index_map
+        return imap.size_global * self.W.dofmap.index_map_bs
+
+    def set_slab(self, x0: np.ndarray, v0: np.ndarray, dt: float) -> None:
+        """Start a slab of length dt from (x0, v0), which is also the base state of H."""
+        self.x0.value, self.v0.value = x0, v0
+        self.xbar.value, self.vbar.value = x0, v0
+        self.dt.value = dt

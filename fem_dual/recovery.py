@@ -1,0 +1,81 @@
+"""Primal recovery at the vertices of the time mesh: the DtP image (x^, v^), the auxiliary dual
+Hamiltonian, and (when output asks for them) the dual fields.
+
+xi' and eta' jump at interior vertices of a C0 Lagrange field, so x^ and v^ are two-valued there.
+Rule: the value at a vertex is the average of the one-sided values of the cells that share it
+(two inside the slab, one at the slab ends, where the value is one-sided and exact for the cell).
+
+In parallel every rank evaluates its owned cells at both ends; rank 0 gathers and averages. Each
+cell is owned by exactly one rank, so every vertex gets exactly its incident cells, once.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+import ufl
+
+from fem_dual.compat import CellPointEvaluator
+from fem_dual.mpi import gather_rows
+from fem_dual.problem import SlabProblem
+
+__all__ = ["VertexValues", "VertexSampler"]
+
+
+@dataclass
+class VertexValues:
+    """Values at the vertices of one slab, sorted by the reference coordinate s in [0, 1]."""
+
+    s: np.ndarray
+    x: np.ndarray  # (vertices, n)
+    v: np.ndarray
+    hamiltonian: np.ndarray
+    xi: Optional[np.ndarray] = None
+    eta: Optional[np.ndarray] = None
+
+    def finite(self) -> bool:
+        arrays = [self.x, self.v, self.hamiltonian] + [a for a in (self.xi, self.eta)
+                                                       if a is not None]
+        return all(np.isfinite(a).all() for a in arrays)
+
+
+class VertexSampler:
+    """Evaluates the DtP image at the vertices of the slab mesh.
+
+    Args:
+        problem: the slab problem.
+        with_dual: also sample xi and eta (for XDMF output); off when no output is asked for.
+    """
+
+    def __init__(self, problem: SlabProblem, with_dual: bool = False):
+        self.problem = problem
+        self.with_dual = with_dual
+        n = problem.n
+        parts = [ufl.SpatialCoordinate(problem.mesh.msh)[0], *problem.xhat, *problem.vhat,
+                 problem.hamiltonian]
+        if with_dual:
+            parts += [*problem.xi, *problem.eta]
+        self._eval = CellPointEvaluator(ufl.as_vector(parts), np.array([0.0, 1.0]))
+        self._cells = np.arange(problem.mesh.msh.topology.index_map(1).size_local, dtype=np.int32)
+        self._n = n
+
+    def __call__(self) -> Optional[VertexValues]:
+        """Sample the current dual solution; the result lives on rank 0 (None elsewhere)."""
+        local = self._eval(self._cells).reshape(-1, self._eval.value_size)
+        rows = gather_rows(self.problem.comm, local)
+        if rows is None:
+            return None
+        s, inverse = np.unique(rows[:, 0], return_inverse=True)
+        total = np.zeros((len(s), rows.shape[1]))
+        count = np.zeros(len(s))
+        np.add.at(total, inverse, rows)
+        np.add.at(count, inverse, 1.0)
+        mean = total / count[:, None]
+        n = self._n
+        values = VertexValues(s=s, x=mean[:, 1:1 + n], v=mean[:, 1 + n:1 + 2 * n],
+                              hamiltonian=mean[:, 1 + 2 * n])
+        if self.with_dual:
+            values.xi = mean[:, 2 + 2 * n:2 + 3 * n]
+            values.eta = mean[:, 2 + 3 * n:2 + 4 * n]
+        return values

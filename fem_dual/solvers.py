@@ -1,0 +1,104 @@
+"""PETSc solvers of one slab. A linear scene gets one KSP (matrix assembled and factored once while
+the slab length stays the same); a nonlinear scene gets PETSc SNES (see fem_dual.newton).
+
+Options are a dict applied under a per-solver prefix (`dual_<scene>_`) and removed again after
+`setFromOptions()`, so solvers never leak settings into each other. Options the user set already
+(PETSC_OPTIONS, or `--petsc-option` on the command line) win over the defaults.
+"""
+from __future__ import annotations
+
+import time
+from contextlib import contextmanager
+from typing import Dict, Iterator, Mapping, Optional
+
+from dolfinx import fem
+from dolfinx.fem import petsc as fem_petsc
+from petsc4py import PETSc
+
+from fem_dual.errors import SolveError
+from fem_dual.problem import SlabProblem
+
+__all__ = ["LINEAR_DEFAULTS", "solver_prefix", "petsc_options", "LinearSlabSolver"]
+
+LINEAR_DEFAULTS: Dict[str, str] = {
+    "ksp_type": "preonly",
+    "pc_type": "lu",
+    "pc_factor_mat_solver_type": "mumps",
+    "ksp_error_if_not_converged": "true",
+}
+
+
+def solver_prefix(scene_name: str) -> str:
+    return "dual_" + scene_name.replace("-", "_") + "_"
+
+
+@contextmanager
+def petsc_options(prefix: str, defaults: Mapping[str, str],
+                  overrides: Optional[Mapping[str, str]] = None) -> Iterator[None]:
+    """Push `defaults` (unless already set) and `overrides` under `prefix`, then remove them."""
+    opts = PETSc.Options()
+    pushed = []
+    for key, value in {**defaults, **(overrides or {})}.items():
+        full = prefix + key
+        if key in (overrides or {}) or not opts.hasName(full):
+            opts[full] = value
+            pushed.append(full)
+    try:
+        yield
+    finally:
+        for full in pushed:
+            opts.delValue(full)
+
+
+class LinearSlabSolver:
+    """One KSP solve per slab of the quadratic dual action: J w = -R(0).
+
+    The Jacobian does not depend on the initial or base state; it is assembled and factored once
+    and again only when the slab length changes.
+    """
+
+    def __init__(self, problem: SlabProblem, prefix: str,
+                 overrides: Optional[Mapping[str, str]] = None):
+        self.problem = problem
+        t = time.perf_counter()
+        self.a = fem.form(problem.jacobian)
+        self.L = fem.form(problem.residual)
+        self.compile_s = time.perf_counter() - t
+        self.A = fem_petsc.create_matrix(self.a)
+        self.b = fem_petsc.create_vector(self.L)
+        self.ksp = PETSc.KSP().create(problem.comm)
+        self.ksp.setOperators(self.A)
+        self.ksp.setOptionsPrefix(prefix)
+        with petsc_options(prefix, LINEAR_DEFAULTS, overrides):
+            self.ksp.setFromOptions()
+        self._assembled_dt: Optional[float] = None
+        self.iterations = []
+
+    def assemble_matrix(self) -> None:
+        self.A.zeroEntries()
+        fem_petsc.assemble_matrix(self.A, self.a, bcs=self.problem.bcs)
+        self.A.assemble()
+        self.ksp.setOperators(self.A)  # new values: refactor at the next solve
+        self._assembled_dt = float(self.problem.dt.value)
+
+    def solve(self) -> None:
+        """Solve the current slab into problem.w; raises SolveError if KSP fails."""
+        p = self.problem
+        if self._assembled_dt != float(p.dt.value):
+            self.assemble_matrix()
+        p.w.x.array[:] = 0.0  # the residual is affine: R(0) is minus the right-hand side
+        with self.b.localForm() as loc:
+            loc.set(0.0)
+        fem_petsc.assemble_vector(self.b, self.L)
+        self.b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        self.b.scale(-1.0)
+        fem_petsc.set_bc(self.b, p.bcs)
+        try:
+            self.ksp.solve(self.b, p.w.vector)
+        except PETSc.Error as exc:
+            raise SolveError(f"linear solve failed (PETSc error {exc.ierr})") from None
+        reason = self.ksp.getConvergedReason()
+        if reason < 0:
+            raise SolveError(f"linear solve did not converge (KSP reason {reason})")
+        self.iterations.append(self.ksp.getIterationNumber())
+        p.w.x.scatter_forward()

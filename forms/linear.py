@@ -1,0 +1,36 @@
+"""Linear second-order systems M q'' + K q = 0 with a quadratic H (reference, section 3.3).
+
+F(q) = -K q with K not necessarily symmetric (a curl force when K != K^T),
+H(dq, dv) = 1/2 dq.A dq + 1/2 dv.B dv with A, B symmetric positive definite, and the explicit
+dual-to-primal map around the base state (eq. ZieglerDualToPrimal, shifted by the base state):
+
+    q^ = qbar + A^-1 (K^T eta - xi'),     v^ = vbar - B^-1 (M eta' + xi).
+
+The reduced dual Lagrangian is quadratic in (xi, eta): one symmetric positive-definite linear
+system per slab. The constants `c` are fem.Constants named M, K, A, B, Ainv, Binv.
+"""
+from __future__ import annotations
+
+from typing import Mapping
+
+import ufl
+from ufl import dot
+
+__all__ = ["constant_names", "force", "aux_potential", "dtp_map"]
+
+constant_names = ("M", "K", "A", "B", "Ainv", "Binv")
+
+
+def force(q, c: Mapping):
+    return -dot(c["K"], q)
+
+
+def aux_potential(dq, dv, c: Mapping):
+    return 0.5 * dot(dq, dot(c["A"], dq)) + 0.5 * dot(dv, dot(c["B"], dv))
+
+
+def dtp_map(xi, eta, dxi, deta, xbar, vbar, c: Mapping):
+    """Explicit DtP map: stationarity of the pre-dual Lagrangian in (q, v)."""
+    qhat = xbar + dot(c["Ainv"], dot(ufl.transpose(c["K"]), eta) - dxi)
+    vhat = vbar - dot(c["Binv"], dot(c["M"], deta) + xi)
+    return qhat, vhat
