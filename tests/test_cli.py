@@ -1,0 +1,126 @@
+"""The command line: JSON contract, exit statuses, one-line errors, output files."""
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import meshio
+import numpy as np
+import pytest
+from meshio.xdmf import TimeSeriesReader
+from mpi4py import MPI
+
+from fem_dual.cli import main
+
+FEM_DUAL = [sys.executable, "-m", "fem_dual.cli"]
+
+BAD_INPUTS = [
+    (["run", "nosuchscene"], "nosuchscene"),
+    (["run", "ziegler", "--param", "nosuch=1"], "nosuch"),
+    (["run", "ziegler", "--param", "m1"], "m1"),
+    (["run", "ziegler", "--param", "P=abc"], "abc"),
+    (["run", "ziegler", "--T", "0"], "T="),
+    (["run", "ziegler", "--T", "-3"], "-3"),
+    (["run", "ziegler", "--T", "inf"], "inf"),
+    (["run", "ziegler", "--cells", "0"], "cells"),
+    (["run", "ziegler", "--cells", "2.5"], "cells"),
+    (["run", "ziegler", "--degree", "0"], "degree"),
+    (["run", "ziegler", "--slabs", "0"], "slabs"),
+    (["run", "ziegler", "--slabs", "many"], "many"),
+    (["run", "ziegler", "--x0", "1,2,3"], "x0"),
+    (["run", "ziegler", "--x0", "1,nan"], "nan"),
+    (["run", "ziegler", "--v0", "1,inf"], "inf"),
+    (["run", "ziegler", "--param", "m1=0"], "m1"),
+    (["run", "ziegler", "--param", "m2=-1"], "m2"),
+    (["run", "ziegler", "--param", "l=0"], "l="),
+    (["run", "ziegler", "--param", "A=1,2,2,1"], "A="),
+    (["run", "ziegler", "--param", "A=1,0.5,0,1"], "A="),
+    (["run", "ziegler", "--param", "B=-1"], "B="),
+    (["run", "ziegler", "--param", "B=1,2,3"], "B="),
+    (["run", "ziegler", "--cells", "100000000", "--slabs", "10"], "too large"),
+]
+
+
+@pytest.mark.serial
+@pytest.mark.parametrize("argv, named", BAD_INPUTS)
+def test_bad_input_is_one_line_exit_2_and_touches_nothing(argv, named, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(argv + ["--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("fem-dual: error:"), err
+    assert named in err
+    assert "Traceback" not in err
+    assert not out.exists()
+
+
+@pytest.mark.serial
+def test_unwritable_out_is_bad_input(tmp_path, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory")
+    assert main(["run", "ziegler", "--cells", "4", "--out", str(blocker / "sub")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--out" in err
+    assert blocker.read_text() == "not a directory"
+
+
+@pytest.mark.serial
+def test_bad_input_through_the_installed_entry_point(tmp_path):
+    proc = subprocess.run(FEM_DUAL + ["run", "ziegler", "--T", "nan"], capture_output=True,
+                          text=True, stdin=subprocess.DEVNULL, cwd=tmp_path)
+    assert proc.returncode == 2
+    assert proc.stderr.strip() == "fem-dual: error: T='nan' is not finite"
+    assert proc.stdout == ""
+
+
+@pytest.mark.mpi
+def test_json_contract(capsys):
+    assert main(["run", "ziegler", "--cells", "20", "--degree", "3", "--slabs", "2",
+                 "--T", "4", "--x0", "-0.1,0.05", "--json"]) == 0
+    out = capsys.readouterr().out
+    if MPI.COMM_WORLD.rank != 0:
+        assert out == ""
+        return
+    data = json.loads(out)
+    for key in ("scene", "T", "cells", "degree", "slabs", "t", "x", "v", "final", "error",
+                "hamiltonian", "timings"):
+        assert key in data
+    assert data["x0"] == [-0.1, 0.05]
+    assert len(data["t"]) == 2 * 20 + 1 and data["t"][-1] == pytest.approx(4.0)
+    assert np.array(data["x"]).shape == (41, 2) and np.array(data["v"]).shape == (41, 2)
+    assert data["final"]["x"] == data["x"][-1] and data["final"]["v"] == data["v"][-1]
+    assert set(data["error"]) >= {"x_max", "v_max", "final"}
+    assert data["error"]["x_max"] < 1e-4
+    assert set(data["hamiltonian"]) >= {"min", "max", "drift"}
+    assert set(data["timings"]) >= {"total_s", "compile_s", "solve_s"}
+
+
+@pytest.mark.mpi
+def test_xdmf_output_matches_json(tmp_path_factory, capsys):
+    comm = MPI.COMM_WORLD
+    out = Path(comm.bcast(str(tmp_path_factory.mktemp("out")) if comm.rank == 0 else None))
+    assert main(["run", "ziegler", "--cells", "10", "--slabs", "3", "--T", "3", "--json",
+                 "--out", str(out)]) == 0
+    if comm.rank != 0:
+        return
+    data = json.loads(capsys.readouterr().out)
+    names = sorted(os.listdir(out))
+    assert names == ["ziegler.h5", "ziegler.xdmf", "ziegler_trajectory.h5",
+                     "ziegler_trajectory.xdmf"]  # no temporary directory left behind
+    with TimeSeriesReader(out / "ziegler.xdmf") as reader:
+        points, cells = reader.read_points_cells()
+        assert reader.num_steps == 3 and len(points) == 11 and cells[0].type == "line"
+        t_all = []
+        for k in range(3):
+            t0, pdata, _ = reader.read_data(k)
+            assert t0 == pytest.approx(k * 1.0)
+            assert set(pdata) == {"t", "xi", "eta", "x_hat", "v_hat", "hamiltonian"}
+            assert np.isfinite(pdata["x_hat"]).all()
+            assert np.allclose(pdata["xi"][-1], 0) and np.allclose(pdata["eta"][-1], 0)
+            t_all.append(pdata["t"] if k == 0 else pdata["t"][1:])
+            if k == 0:
+                assert np.allclose(pdata["x_hat"], np.array(data["x"])[:11])
+    assert np.allclose(np.concatenate(t_all), data["t"])
+    traj = meshio.read(out / "ziegler_trajectory.xdmf")
+    assert np.allclose(traj.points[:, :2], data["x"])
+    assert np.allclose(traj.point_data["t"], data["t"])

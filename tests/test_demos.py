@@ -1,0 +1,36 @@
+"""Demos are tested by running them, in a temporary directory (DOLFINx python/demo/test.py)."""
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+DEMOS = sorted((Path(__file__).parent.parent / "demos").glob("demo_*.py"))
+ENV = {**os.environ, "OMPI_ALLOW_RUN_AS_ROOT": "1", "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM": "1",
+       "OMPI_MCA_rmaps_base_oversubscribe": "1"}
+
+
+def _check(proc, cwd, demo):
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "error against" in proc.stdout or "error" in proc.stdout
+    scene = demo.stem.removeprefix("demo_")
+    assert (cwd / f"out_{scene}" / f"{scene}.xdmf").is_file()
+
+
+@pytest.mark.serial
+@pytest.mark.parametrize("demo", DEMOS, ids=[d.stem for d in DEMOS])
+def test_demo_runs(demo, tmp_path):
+    proc = subprocess.run([sys.executable, str(demo)], cwd=tmp_path, capture_output=True,
+                          text=True, stdin=subprocess.DEVNULL, env=ENV, timeout=600)
+    _check(proc, tmp_path, demo)
+
+
+@pytest.mark.serial
+@pytest.mark.parametrize("demo", DEMOS, ids=[d.stem for d in DEMOS])
+def test_demo_runs_under_mpirun(demo, tmp_path):
+    proc = subprocess.run(["mpirun", "-n", "2", sys.executable, str(demo)], cwd=tmp_path,
+                          capture_output=True, text=True, stdin=subprocess.DEVNULL, env=ENV,
+                          timeout=600)
+    _check(proc, tmp_path, demo)
+    assert proc.stdout.count("wrote ") == 1  # printed on rank 0 only
