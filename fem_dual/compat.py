@@ -7,7 +7,8 @@ import numpy as np
 import ufl
 from dolfinx import fem
 
-__all__ = ["quiet_jit_logging", "CellPointEvaluator", "vector_space", "constant"]
+__all__ = ["quiet_jit_logging", "CellPointEvaluator", "vector_space", "vector_space_dg1",
+           "constant"]
 
 
 def _drop_info(record: logging.LogRecord) -> bool:
@@ -25,6 +26,11 @@ def quiet_jit_logging() -> None:
 def vector_space(msh, degree: int, dim: int) -> fem.FunctionSpace:
     """One blocked Lagrange space of `dim` components (0.5.2: ufl.VectorElement)."""
     return fem.FunctionSpace(msh, ufl.VectorElement("Lagrange", msh.ufl_cell(), degree, dim=dim))
+
+
+def vector_space_dg1(msh, dim: int) -> fem.FunctionSpace:
+    """Discontinuous P1 with `dim` components; its cell dofs sit at reference points 0 and 1."""
+    return fem.FunctionSpace(msh, ufl.VectorElement("DG", msh.ufl_cell(), 1, dim=dim))
 
 
 def constant(msh, value) -> fem.Constant:

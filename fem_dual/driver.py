@@ -19,6 +19,7 @@ from fem_dual.config import RunConfig
 from fem_dual.errors import InputError, SolveError
 from fem_dual.mpi import bcast
 from fem_dual.output import OutputDir, check_output_dir, XdmfSeries, write_polyline
+from fem_dual.newton import NewtonSlabSolver
 from fem_dual.problem import SlabProblem
 from fem_dual.recovery import VertexSampler, VertexValues
 from fem_dual.solvers import LinearSlabSolver, solver_prefix
@@ -123,7 +124,15 @@ def _make_solver(problem: SlabProblem, config: RunConfig):
     prefix = solver_prefix(config.scene.name)
     if config.scene.linear:
         return LinearSlabSolver(problem, prefix, config.petsc)
-    raise NotImplementedError(f"scene {config.scene.name} needs the nonlinear solver")
+    return NewtonSlabSolver(problem, prefix, config.petsc)
+
+
+def _solver_record(solver, prefix: str) -> Dict[str, Any]:
+    if isinstance(solver, NewtonSlabSolver):
+        return {"kind": "snes", "prefix": prefix, "newton_iterations": list(solver.iterations),
+                "residual_norms": list(solver.residual_norms),
+                "residual_histories": [list(h) for h in solver.histories]}
+    return {"kind": "ksp", "prefix": prefix, "ksp_iterations": list(solver.iterations)}
 
 
 def run(config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD) -> RunResult:
@@ -162,15 +171,15 @@ def run(config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD) -> RunResult:
     state = (config.x0, config.v0)
 
     for k, (t0, dt) in enumerate(partition(config.T, config.slabs)):
-        problem.set_slab(state[0], state[1], dt)
+        problem.set_slab(state[0], state[1], dt, t0)
         t1 = time.perf_counter()
         try:
             solver.solve()
+            t2 = time.perf_counter()
+            vals = sampler()
         except SolveError as exc:
             failure = SolveError(f"slab {k} (t = {t0:g} .. {t0 + dt:g}): {exc}", slab=k)
             break
-        t2 = time.perf_counter()
-        vals = sampler()
         finite = bcast(comm, vals.finite() if root else None)
         timings["solve_s"] += t2 - t1
         timings["recovery_s"] += time.perf_counter() - t2
@@ -210,8 +219,7 @@ def run(config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD) -> RunResult:
             degree=config.degree, slabs=config.slabs, x0=config.x0.tolist(),
             v0=config.v0.tolist(), dofs_per_slab=problem.num_dofs, t=t, x=x, v=v,
             error=acc.error(), hamiltonian=acc.hamiltonian(), timings=timings,
-            solver={"kind": "ksp", "prefix": solver_prefix(scene.name),
-                    "ksp_iterations": list(solver.iterations)},
+            solver=_solver_record(solver, solver_prefix(scene.name)),
             slab_lengths=lengths, output_files=files)
         if failure is not None:
             result.status, result.message = "failed", str(failure)

@@ -10,14 +10,16 @@ the base state (xbar, vbar) of H: changing slabs never recompiles a form.
 """
 from __future__ import annotations
 
-from typing import Dict
+from typing import Dict, Optional
 
+import basix
 import numpy as np
 import ufl
 from dolfinx import fem
 from mpi4py import MPI
 
 from fem_dual.compat import constant, vector_space
+from fem_dual.pointwise import PointwiseDtP
 from fem_dual.scenes.base import Scene
 from forms.predual import boundary_term, dual_hamiltonian, predual_lagrangian
 from meshes import START, slab_mesh
@@ -48,6 +50,7 @@ class SlabProblem:
         self.c: Dict[str, fem.Constant] = {k: constant(msh, v) for k, v in scene.constants().items()}
         zero = np.zeros(n)
         self.dt = constant(msh, 1.0)
+        self.t0 = constant(msh, 0.0)
         self.x0, self.v0 = constant(msh, zero), constant(msh, zero)
         self.xbar, self.vbar = constant(msh, zero), constant(msh, zero)
 
@@ -60,16 +63,33 @@ class SlabProblem:
         f = scene.forms
         c = self.c
         M = c["M"]
-        self.xhat, self.vhat = f.dtp_map(self.xi, self.eta, self.dxi, self.deta, self.xbar,
-                                         self.vbar, c)
-        force = lambda x: f.force(x, c)  # noqa: E731
-        aux = lambda dx_, dv_: f.aux_potential(dx_, dv_, c)  # noqa: E731
-        L_d = predual_lagrangian(self.xhat, self.vhat, self.xi, self.eta, self.dxi, self.deta, M,
-                                 force, aux, self.xbar, self.vbar)
-        self.hamiltonian = dual_hamiltonian(self.xhat, self.vhat, self.xi, self.eta, force, aux,
-                                            self.xbar, self.vbar)
-
+        self.time = self.t0 + self.dt * ufl.SpatialCoordinate(msh)[0]
         qdeg = scene.quadrature_degree(degree)
+        self.pointwise: Optional[PointwiseDtP] = None
+        if f.dtp == "explicit":
+            self.xhat, self.vhat = f.dtp_map(self.xi, self.eta, self.dxi, self.deta, self.xbar,
+                                             self.vbar, c)
+        else:
+            # Newton-linearised DtP map around the pointwise solution X of G(X) = 0 at the
+            # quadrature points: x^ = X - G_x(X)^-1 G(X; xi, eta, xi'). Equal to X where G = 0,
+            # with the exact derivative -G_x^-1 G_zeta, so the Jacobian of the action is the exact
+            # second variation of the reduced action.
+            cell = msh.ufl_cell()
+            Qx = fem.FunctionSpace(msh, ufl.VectorElement("Quadrature", cell, qdeg, dim=n,
+                                                          quad_scheme="default"))
+            Qt = fem.FunctionSpace(msh, ufl.TensorElement("Quadrature", cell, qdeg, shape=(n, n),
+                                                          quad_scheme="default"))
+            points = basix.make_quadrature(basix.CellType.interval, qdeg)[0]
+            self.pointwise = PointwiseDtP(Qx, points, self.position_equations, self.time, Qt)
+            X, Ginv = self.pointwise.X, self.pointwise.Ginv
+            self.xhat = X - ufl.dot(Ginv, self.position_equations(X))
+            self.vhat = f.velocity_map(self.xi, self.deta, self.vbar, c)
+        self.force = lambda x: f.force(x, c)  # noqa: E731
+        self.aux = lambda dx_, dv_: f.aux_potential(dx_, dv_, c)  # noqa: E731
+        L_d = predual_lagrangian(self.xhat, self.vhat, self.xi, self.eta, self.dxi, self.deta, M,
+                                 self.force, self.aux, self.xbar, self.vbar)
+        self.hamiltonian = self.hamiltonian_of(self.xhat, self.vhat)
+
         dx = ufl.Measure("dx", domain=msh, metadata={"quadrature_degree": qdeg})
         ds = ufl.Measure("ds", domain=msh, subdomain_data=self.mesh.tags)
         self.action = L_d * self.dt * dx + boundary_term(self.xi, self.eta, M, self.x0,
@@ -80,13 +100,27 @@ class SlabProblem:
         end_dofs = fem.locate_dofs_topological(self.W, 0, self.mesh.end_vertices)
         self.bcs = [fem.dirichletbc(np.zeros(2 * n), end_dofs, self.W)]
 
+    def position_equations(self, x):
+        """G(x; xi, eta, xi') = 0, the implicit position part of the DtP map."""
+        return self.scene.forms.position_equations(x, self.xi, self.eta, self.dxi, self.xbar,
+                                                   self.c)
+
+    def hamiltonian_of(self, xhat, vhat):
+        """The auxiliary dual Hamiltonian (eq. DualHamiltonian) at the DtP image (xhat, vhat)."""
+        return dual_hamiltonian(xhat, vhat, self.xi, self.eta, self.force, self.aux, self.xbar,
+                                self.vbar)
+
     @property
     def num_dofs(self) -> int:
         imap = self.W.dofmap.index_map
         return imap.size_global * self.W.dofmap.index_map_bs
 
-    def set_slab(self, x0: np.ndarray, v0: np.ndarray, dt: float) -> None:
-        """Start a slab of length dt from (x0, v0), which is also the base state of H."""
+    def set_slab(self, x0: np.ndarray, v0: np.ndarray, dt: float, t0: float = 0.0) -> None:
+        """Start a slab [t0, t0 + dt] from (x0, v0), which is also the base state of H; the dual
+        state starts from zero, whose DtP image is the base state."""
         self.x0.value, self.v0.value = x0, v0
         self.xbar.value, self.vbar.value = x0, v0
-        self.dt.value = dt
+        self.dt.value, self.t0.value = dt, t0
+        self.w.x.array[:] = 0.0
+        if self.pointwise is not None:
+            self.pointwise.reset(x0)

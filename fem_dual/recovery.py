@@ -16,7 +16,9 @@ from typing import Optional
 import numpy as np
 import ufl
 
-from fem_dual.compat import CellPointEvaluator
+from fem_dual.compat import CellPointEvaluator, vector_space_dg1
+from fem_dual.errors import SolveError
+from fem_dual.pointwise import PointwiseDtP
 from fem_dual.mpi import gather_rows
 from fem_dual.problem import SlabProblem
 
@@ -52,16 +54,33 @@ class VertexSampler:
         self.problem = problem
         self.with_dual = with_dual
         n = problem.n
-        parts = [ufl.SpatialCoordinate(problem.mesh.msh)[0], *problem.xhat, *problem.vhat,
-                 problem.hamiltonian]
+        msh = problem.mesh.msh
+        ends = np.array([0.0, 1.0])
+        self.vertex_dtp: Optional[PointwiseDtP] = None
+        xhat, hamiltonian = problem.xhat, problem.hamiltonian
+        if problem.pointwise is not None:  # implicit DtP: solve G = 0 at the cell ends (DG1 nodes)
+            space = vector_space_dg1(msh, n)
+            self.vertex_dtp = PointwiseDtP(space, ends, problem.position_equations, problem.time)
+            xhat = self.vertex_dtp.X
+            hamiltonian = problem.hamiltonian_of(xhat, problem.vhat)
+        parts = [ufl.SpatialCoordinate(msh)[0], *xhat, *problem.vhat, hamiltonian]
         if with_dual:
             parts += [*problem.xi, *problem.eta]
-        self._eval = CellPointEvaluator(ufl.as_vector(parts), np.array([0.0, 1.0]))
+        self._eval = CellPointEvaluator(ufl.as_vector(parts), ends)
         self._cells = np.arange(problem.mesh.msh.topology.index_map(1).size_local, dtype=np.int32)
         self._n = n
 
     def __call__(self) -> Optional[VertexValues]:
-        """Sample the current dual solution; the result lives on rank 0 (None elsewhere)."""
+        """Sample the current dual solution; the result lives on rank 0 (None elsewhere).
+
+        Raises:
+            SolveError: the implicit DtP map cannot be solved at a vertex.
+        """
+        if self.vertex_dtp is not None:
+            self.vertex_dtp.reset(self.problem.xbar.value)
+            message = self.vertex_dtp.solve(self.problem.comm)
+            if message:
+                raise SolveError(message)
         local = self._eval(self._cells).reshape(-1, self._eval.value_size)
         rows = gather_rows(self.problem.comm, local)
         if rows is None:

@@ -16,9 +16,9 @@ from typing import Mapping
 import ufl
 from ufl import dot
 
-__all__ = ["constant_names", "force", "aux_potential", "dtp_map"]
+__all__ = ["dtp", "force", "aux_potential", "dtp_map"]
 
-constant_names = ("M", "K", "A", "B", "Ainv", "Binv")
+dtp = "explicit"
 
 
 def force(q, c: Mapping):

@@ -12,7 +12,7 @@ from typing import Callable
 import ufl
 from ufl import dot
 
-__all__ = ["predual_lagrangian", "dual_hamiltonian", "boundary_term"]
+__all__ = ["predual_lagrangian", "dual_hamiltonian", "boundary_term", "isotropic_quadratic"]
 
 Force = Callable[[ufl.core.expr.Expr], ufl.core.expr.Expr]
 AuxH = Callable[[ufl.core.expr.Expr, ufl.core.expr.Expr], ufl.core.expr.Expr]
@@ -42,3 +42,8 @@ def dual_hamiltonian(x, v, xi, eta, F: Force, H: AuxH, xbar, vbar):
 def boundary_term(xi, eta, M, x0, v0):
     """-x0.xi(0) - (M v0).eta(0): the initial conditions, natural at t = 0 (eq. DualAction)."""
     return -dot(x0, xi) - dot(dot(M, v0), eta)
+
+
+def isotropic_quadratic(dx, dv, alpha, beta):
+    """H = alpha/2 |dx|^2 + beta/2 |dv|^2 (the auxiliary function of sections 3.1 and 3.2)."""
+    return 0.5 * alpha * dot(dx, dx) + 0.5 * beta * dot(dv, dv)

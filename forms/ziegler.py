@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from forms.linear import aux_potential, constant_names, dtp_map, force
+from forms.linear import aux_potential, dtp, dtp_map, force
 
 __all__ = ["mass_matrix", "stiffness_matrix", "force", "aux_potential", "dtp_map",
-           "constant_names"]
+           "dtp"]
 
 
 def mass_matrix(m1: float, m2: float, l: float) -> np.ndarray:

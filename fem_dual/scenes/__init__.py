@@ -5,11 +5,22 @@ from typing import Dict, Type
 
 from fem_dual.errors import InputError
 from fem_dual.scenes.base import Scene
+from fem_dual.scenes.curl import Curl2D, Curl2DUFL, Curl3D, Curl3DUFL, ForceScene
 from fem_dual.scenes.ziegler import Ziegler
 
-__all__ = ["SCENES", "get_scene", "Scene"]
+__all__ = ["SCENES", "get_scene", "register", "Scene", "ForceScene"]
 
-SCENES: Dict[str, Type[Scene]] = {cls.name: cls for cls in (Ziegler,)}
+SCENES: Dict[str, Type[Scene]] = {}
+
+
+def register(cls: Type[Scene]) -> Type[Scene]:
+    """Add a scene class to the registry (usable as a decorator)."""
+    SCENES[cls.name] = cls
+    return cls
+
+
+for _cls in (Ziegler, Curl3D, Curl2D, Curl3DUFL, Curl2DUFL):
+    register(_cls)
 
 
 def get_scene(name: str) -> Type[Scene]:

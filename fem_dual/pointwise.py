@@ -1,0 +1,98 @@
+"""The implicit dual-to-primal map, solved pointwise by Newton.
+
+For forces whose DtP map has no closed form (curl2d, user-defined forces), the position part
+x^ solves G(x; xi, eta, xi') = 0 with G = xi' + DF(x)^T eta + dH/dx(x - xbar) (stationarity of the
+pre-dual Lagrangian in x). It is solved at fixed reference points of every local cell: the
+quadrature points where the forms are evaluated, or the cell ends for vertex recovery. The values
+live in a Function of a point space (Quadrature, or DG1 whose nodes are the cell ends), so they
+enter forms and expressions as coefficients.
+
+Where G_x becomes singular (det G_x ~ 0, the determinant condition of section 3.1) the map is not
+invertible: the solve stops with a message naming the time.
+"""
+from __future__ import annotations
+
+from typing import Callable, Optional
+
+import numpy as np
+import ufl
+from dolfinx import fem
+from mpi4py import MPI
+
+from fem_dual.compat import CellPointEvaluator
+
+__all__ = ["PointwiseDtP", "SINGULAR_TOL"]
+
+SINGULAR_TOL = 1e-10  # |det G_x| / (max |G_x|)^n below this: the DtP map is not invertible
+
+
+class PointwiseDtP:
+    """Newton on G(x) = 0 at the reference points `points` of every local cell.
+
+    Args:
+        space: vector point space (n components) holding x^ at the points.
+        points: reference coordinates of the points, in the order of the space's cell dofs.
+        equations: G as a UFL function of the position (a ufl.variable).
+        time: UFL expression of the physical time (for messages).
+        inverse_space: optional tensor point space (n x n) to receive G_x^-1 at the solution,
+            for the Newton-linearised DtP map of the global Jacobian.
+    """
+
+    def __init__(self, space: fem.FunctionSpace, points: np.ndarray,
+                 equations: Callable[[ufl.core.expr.Expr], ufl.core.expr.Expr],
+                 time: ufl.core.expr.Expr, inverse_space: Optional[fem.FunctionSpace] = None):
+        self.X = fem.Function(space)
+        self.n = n = space.dofmap.index_map_bs
+        xv = ufl.variable(self.X)
+        G = equations(xv)
+        Gx = ufl.diff(G, xv)
+        self.equations = equations
+        parts = [*G, *[Gx[i, j] for i in range(n) for j in range(n)], time]
+        self._eval = CellPointEvaluator(ufl.as_vector(parts), points)
+        msh = space.mesh
+        imap = msh.topology.index_map(msh.topology.dim)
+        self.cells = np.arange(imap.size_local + imap.num_ghosts, dtype=np.int32)
+        self.dofs = space.dofmap.list.array.reshape(len(self.cells), len(points))
+        self.Ginv = fem.Function(inverse_space) if inverse_space is not None else None
+        self.iterations = 0
+
+    def reset(self, xbar: np.ndarray) -> None:
+        """Start from the base state (the DtP image of the zero dual state)."""
+        self.X.x.array.reshape(-1, self.n)[:] = xbar
+
+    def solve(self, comm, max_it: int = 50) -> Optional[str]:
+        """Solve G = 0 at every point; returns None, or a message (the same on every rank)."""
+        n = self.n
+        values = self.X.x.array.reshape(-1, self.n)
+        problem = None
+        for it in range(max_it + 1):
+            out = self._eval(self.cells)
+            G, Gx = out[..., :n], out[..., n:n + n * n].reshape(out.shape[:2] + (n, n))
+            t = out[..., -1]
+            scale = np.abs(Gx).max(axis=(-1, -2))
+            det = np.abs(np.linalg.det(Gx))
+            bad = ~(det > SINGULAR_TOL * scale**n)
+            if bad.any():
+                where = np.unravel_index(np.argmax(bad), bad.shape)
+                problem = (f"the DtP map is not invertible at t = {t[where]:.6g} "
+                           f"(det G_x = {det[where]:.3g}); use smaller slabs or larger alpha")
+                break
+            step = np.linalg.solve(Gx, G[..., None])[..., 0]
+            if not np.isfinite(step).all():
+                problem = "the DtP map produced a non-finite state"
+                break
+            current = values[self.dofs]
+            if np.abs(step).max() <= 1e-14 * (1.0 + np.abs(current).max()):
+                break
+            values[self.dofs] = current - step
+        else:
+            problem = f"the pointwise DtP Newton did not converge in {max_it} iterations"
+        self.iterations = it
+        message = comm.allreduce(problem or "", op=MPI.MAX)  # any rank's message, on every rank
+        if message:
+            return message
+        if self.Ginv is not None:
+            self.Ginv.x.array.reshape(-1, n * n)[self.dofs] = np.linalg.inv(Gx).reshape(
+                Gx.shape[0], Gx.shape[1], n * n)
+        return None
+
