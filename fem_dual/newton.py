@@ -20,11 +20,17 @@ from fem_dual.solvers import petsc_options
 
 __all__ = ["NEWTON_DEFAULTS", "NewtonSlabSolver"]
 
+_REASONS = {getattr(PETSc.SNES.ConvergedReason, name): name
+            for name in dir(PETSc.SNES.ConvergedReason) if name.isupper()}
+
 NEWTON_DEFAULTS: Dict[str, str] = {
     "snes_type": "newtonls",
-    "snes_linesearch_type": "basic",  # full Newton steps; leaves the iterate as SNES expects
-    "snes_rtol": "1e-12",
-    "snes_atol": "1e-13",
+    # Backtracking: full steps are taken when they reduce the residual (quadratic rate near the
+    # solution); a trial state where the implicit DtP map has no solution gives a NaN residual,
+    # and the step is cut.
+    "snes_linesearch_type": "bt",
+    "snes_rtol": "1e-11",
+    "snes_atol": "1e-10",  # above the round-off floor of the residual (~1e-12)
     "snes_stol": "0",
     "snes_max_it": "30",
     "ksp_type": "preonly",
@@ -50,7 +56,8 @@ class NewtonSlabSolver:
         self.snes.setFunction(self._residual, self.b)
         self.snes.setJacobian(self._jacobian, self.A)
         self.snes.setOptionsPrefix(prefix)
-        with petsc_options(prefix, NEWTON_DEFAULTS, overrides):
+        defaults = {**NEWTON_DEFAULTS, **problem.scene.solver_defaults}
+        with petsc_options(prefix, defaults, overrides):
             self.snes.setFromOptions()
         self.snes.setConvergenceHistory(length=1000, reset=True)
         self.iterations: List[int] = []
@@ -63,15 +70,13 @@ class NewtonSlabSolver:
         x.copy(self.problem.w.vector)
         self.problem.w.x.scatter_forward()
         if self.problem.pointwise is not None:
-            message = self.problem.pointwise.solve(self.problem.comm)
-            if message:
-                self._error = self._error or message
+            self._error = self.problem.pointwise.solve(self.problem.comm)
 
     def _residual(self, snes, x, b) -> None:
         self._update(x)
         with b.localForm() as loc:
             loc.set(0.0)
-        if self._error:  # makes SNES stop with a NaN residual; the message is raised after it
+        if self._error:  # NaN residual: the line search cuts the step, or SNES stops
             b.set(float("nan"))
             return
         fem_petsc.assemble_vector(b, self.L)
@@ -96,10 +101,10 @@ class NewtonSlabSolver:
             raise SolveError(f"Newton failed (PETSc error {exc.ierr})") from None
         reason = self.snes.getConvergedReason()
         history = [float(r) for r in self.snes.getConvergenceHistory()[0]]
-        if self._error:
+        if reason < 0 and self._error:
             raise SolveError(self._error)
         if reason < 0:
-            raise SolveError(f"Newton did not converge (SNES reason {reason}, residual "
+            raise SolveError(f"Newton did not converge ({_REASONS.get(reason, reason)}, residual "
                              f"{history[-1] if history else float('nan'):.3g} after "
                              f"{self.snes.getIterationNumber()} iterations); try more slabs")
         self._update(self.x)

@@ -64,6 +64,7 @@ class PointwiseDtP:
         """Solve G = 0 at every point; returns None, or a message (the same on every rank)."""
         n = self.n
         values = self.X.x.array.reshape(-1, self.n)
+        start = values.copy()
         problem = None
         for it in range(max_it + 1):
             out = self._eval(self.cells)
@@ -86,10 +87,14 @@ class PointwiseDtP:
                 break
             values[self.dofs] = current - step
         else:
-            problem = f"the pointwise DtP Newton did not converge in {max_it} iterations"
+            worst = np.unravel_index(np.argmax(np.abs(step).max(axis=-1)), step.shape[:2])
+            problem = (f"the DtP map has no solution near t = {t[worst]:.6g} (pointwise Newton "
+                       f"did not converge in {max_it} iterations); use smaller slabs or larger "
+                       "alpha")
         self.iterations = it
         message = comm.allreduce(problem or "", op=MPI.MAX)  # any rank's message, on every rank
         if message:
+            values[:] = start  # keep the last good state as the next starting guess
             return message
         if self.Ginv is not None:
             self.Ginv.x.array.reshape(-1, n * n)[self.dofs] = np.linalg.inv(Gx).reshape(

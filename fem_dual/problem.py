@@ -17,6 +17,7 @@ import numpy as np
 import ufl
 from dolfinx import fem
 from mpi4py import MPI
+from petsc4py import PETSc
 
 from fem_dual.compat import constant, vector_space
 from fem_dual.pointwise import PointwiseDtP
@@ -43,7 +44,8 @@ class SlabProblem:
         self.n = n
         self.mesh = slab_mesh(comm, cells)
         msh = self.mesh.msh
-        self.W = vector_space(msh, degree, 2 * n)
+        extra = getattr(scene.forms, "extra_dual", 0)  # multipliers of a lifted scene
+        self.W = vector_space(msh, degree, 2 * n + extra)
         self.w = fem.Function(self.W, name="dual")
 
         # Run constants (scene parameters) and per-slab constants.
@@ -59,6 +61,7 @@ class SlabProblem:
         self.eta = ufl.as_vector([w[n + i] for i in range(n)])
         self.dxi = ufl.as_vector([w[i].dx(0) for i in range(n)]) / self.dt
         self.deta = ufl.as_vector([w[n + i].dx(0) for i in range(n)]) / self.dt
+        self.extra = ufl.as_vector([w[2 * n + i] for i in range(extra)]) if extra else None
 
         f = scene.forms
         c = self.c
@@ -66,7 +69,14 @@ class SlabProblem:
         self.time = self.t0 + self.dt * ufl.SpatialCoordinate(msh)[0]
         qdeg = scene.quadrature_degree(degree)
         self.pointwise: Optional[PointwiseDtP] = None
-        if f.dtp == "explicit":
+        self.force = lambda x: f.force(x, c)  # noqa: E731
+        self.aux = lambda dx_, dv_: f.aux_potential(dx_, dv_, c)  # noqa: E731
+        if extra:  # lifted scene: its own augmented Lagrangian, DtP map with auxiliary primal
+            self.xhat, self.vhat, lifted = f.dtp_map(self.xi, self.eta, self.dxi, self.deta,
+                                                     self.xbar, self.vbar, c, self.extra)
+            L_d = f.lagrangian(self.xhat, self.vhat, lifted, self.xi, self.eta, self.dxi,
+                               self.deta, self.extra, self.xbar, self.vbar, c)
+        elif f.dtp == "explicit":
             self.xhat, self.vhat = f.dtp_map(self.xi, self.eta, self.dxi, self.deta, self.xbar,
                                              self.vbar, c)
         else:
@@ -84,10 +94,10 @@ class SlabProblem:
             X, Ginv = self.pointwise.X, self.pointwise.Ginv
             self.xhat = X - ufl.dot(Ginv, self.position_equations(X))
             self.vhat = f.velocity_map(self.xi, self.deta, self.vbar, c)
-        self.force = lambda x: f.force(x, c)  # noqa: E731
-        self.aux = lambda dx_, dv_: f.aux_potential(dx_, dv_, c)  # noqa: E731
-        L_d = predual_lagrangian(self.xhat, self.vhat, self.xi, self.eta, self.dxi, self.deta, M,
-                                 self.force, self.aux, self.xbar, self.vbar)
+        if not extra:
+            L_d = predual_lagrangian(self.xhat, self.vhat, self.xi, self.eta, self.dxi,
+                                     self.deta, M, self.force, self.aux, self.xbar, self.vbar)
+        self.L_d = L_d
         self.hamiltonian = self.hamiltonian_of(self.xhat, self.vhat)
 
         dx = ufl.Measure("dx", domain=msh, metadata={"quadrature_degree": qdeg})
@@ -97,8 +107,12 @@ class SlabProblem:
         self.residual = ufl.derivative(self.action, w, ufl.TestFunction(self.W))
         self.jacobian = ufl.derivative(self.residual, w, ufl.TrialFunction(self.W))
 
-        end_dofs = fem.locate_dofs_topological(self.W, 0, self.mesh.end_vertices)
-        self.bcs = [fem.dirichletbc(np.zeros(2 * n), end_dofs, self.W)]
+        # xi(T) = eta(T) = 0 on the 2n dual fields; multipliers of a lifted scene stay free.
+        self.bcs = []
+        for i in range(2 * n):
+            sub = self.W.sub(i)
+            dofs = fem.locate_dofs_topological(sub, 0, self.mesh.end_vertices)
+            self.bcs.append(fem.dirichletbc(PETSc.ScalarType(0.0), dofs, sub))
 
     def position_equations(self, x):
         """G(x; xi, eta, xi') = 0, the implicit position part of the DtP map."""
@@ -106,7 +120,13 @@ class SlabProblem:
                                                    self.c)
 
     def hamiltonian_of(self, xhat, vhat):
-        """The auxiliary dual Hamiltonian (eq. DualHamiltonian) at the DtP image (xhat, vhat)."""
+        """The auxiliary dual Hamiltonian (eq. DualHamiltonian) at the DtP image (xhat, vhat).
+
+        For a lifted scene, the Legendre transform p.V - L_d with p_xi = -x^, p_eta = -M v^.
+        """
+        if self.extra is not None:
+            return -ufl.dot(xhat, self.dxi) - ufl.dot(ufl.dot(self.c["M"], vhat), self.deta) \
+                - self.L_d
         return dual_hamiltonian(xhat, vhat, self.xi, self.eta, self.force, self.aux, self.xbar,
                                 self.vbar)
 

@@ -5,7 +5,8 @@ from typing import Dict, Type
 
 from fem_dual.errors import InputError
 from fem_dual.scenes.base import Scene
-from fem_dual.scenes.curl import Curl2D, Curl2DUFL, Curl3D, Curl3DUFL, ForceScene
+from fem_dual.scenes.curl import (Curl2D, Curl2DLifted, Curl2DUFL, Curl3D, Curl3DUFL,
+                                  ForceScene)
 from fem_dual.scenes.ziegler import Ziegler
 
 __all__ = ["SCENES", "get_scene", "register", "Scene", "ForceScene"]
@@ -19,7 +20,7 @@ def register(cls: Type[Scene]) -> Type[Scene]:
     return cls
 
 
-for _cls in (Ziegler, Curl3D, Curl2D, Curl3DUFL, Curl2DUFL):
+for _cls in (Ziegler, Curl3D, Curl2D, Curl2DLifted, Curl3DUFL, Curl2DUFL):
     register(_cls)
 
 

@@ -92,6 +92,7 @@ class Scene:
     default_x0: ClassVar[Tuple[float, ...]]
     default_v0: ClassVar[Tuple[float, ...]]
     summary: ClassVar[str] = ""
+    solver_defaults: ClassVar[Dict[str, str]] = {}  # PETSc options this scene needs by default
 
     # -- construction -------------------------------------------------------------------------
     @classmethod

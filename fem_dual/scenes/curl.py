@@ -12,12 +12,13 @@ from typing import ClassVar, Dict, Tuple
 import numpy as np
 
 import forms.curl2d as curl2d_forms
+import forms.curl2d_lifted as curl2d_lifted_forms
 import forms.curl3d as curl3d_forms
 from fem_dual.reference import IVPFlow
 from fem_dual.scenes.base import Scene, require_positive
 from forms import implicit
 
-__all__ = ["ForceScene", "Curl3D", "Curl2D", "Curl3DUFL", "Curl2DUFL"]
+__all__ = ["ForceScene", "Curl3D", "Curl2D", "Curl2DLifted", "Curl3DUFL", "Curl2DUFL"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -106,3 +107,12 @@ class Curl2DUFL(Curl2D):
     name: ClassVar[str] = "curl2d-ufl"
     forms: ClassVar = implicit.make(curl2d_forms.force, curl2d_forms.aux_potential)
     summary: ClassVar[str] = "curl2d as a user-defined force (G derived by UFL)"
+
+
+@dataclasses.dataclass(frozen=True)
+class Curl2DLifted(Curl2D):
+    """curl2d by quadratic lifting: explicit augmented DtP map, multipliers lambda, mu."""
+
+    name: ClassVar[str] = "curl2d-lifted"
+    forms: ClassVar = curl2d_lifted_forms
+    summary: ClassVar[str] = "curl2d by quadratic lifting r = y^2, s = x^2 (remark of section 3.1)"

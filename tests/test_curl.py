@@ -1,0 +1,144 @@
+"""Nonlinear curl forces (reference, sections 3.1, 3.2) against DOP853 at rtol = atol = 1e-13."""
+import json
+
+import h5py
+import numpy as np
+import pytest
+from dolfinx import fem
+from dolfinx.fem import petsc as fem_petsc
+from mpi4py import MPI
+
+from fem_dual import RunConfig, SolveError, run
+from fem_dual.cli import main
+from fem_dual.newton import NewtonSlabSolver
+from fem_dual.problem import SlabProblem
+from fem_dual.scenes import get_scene
+from helpers import observed_rates
+
+CASES = {  # scene: (slabs, cells for the accuracy target)
+    "curl3d": 1,
+    "curl2d": 4,
+    "curl2d-lifted": 4,
+}
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("scene", list(CASES))
+@pytest.mark.parametrize("degree, rate", [(2, 1.9), (3, 2.85)])
+def test_convergence_order(scene, degree, rate):
+    errors = [run(RunConfig.create(scene, cells=c, degree=degree, slabs=CASES[scene]))
+              .error["x_max"] for c in (10, 20, 40, 80)]
+    assert np.all(observed_rates(errors) > rate), (errors, observed_rates(errors))
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("scene, slabs, cells", [("curl3d", 1, 80), ("curl2d", 4, 40),
+                                                 ("curl2d-lifted", 4, 40)])
+def test_accuracy_target_of_the_issue(scene, slabs, cells):
+    r = run(RunConfig.create(scene, T=2.0, cells=cells, degree=3, slabs=slabs))
+    assert r.error["x_max"] <= 1e-6
+    assert r.hamiltonian["drift"] < 1e-5
+    assert len(r.solver["newton_iterations"]) == slabs
+
+
+@pytest.mark.parametrize("scene, params, x0, v0, T, slabs", [
+    ("curl3d", {"alpha": "3", "beta": "0.5", "m": "2"}, "0.5,-0.2,0.3", "0.1,0,-0.2", 2.0, 2),
+    ("curl2d", {"k": "2", "m": "0.5"}, "0.5,-0.4", "0.2,0.1", 3.0, 24),
+    ("curl2d-lifted", {"k": "2", "alpha": "2"}, "0.5,-0.4", "0.2,0.1", 3.0, 24),
+])
+def test_other_parameters_and_states(scene, params, x0, v0, T, slabs):
+    r = run(RunConfig.create(scene, params, T=T, cells=40, degree=3, slabs=slabs, x0=x0, v0=v0))
+    assert r.error["x_max"] <= 1e-6, r.error
+
+
+def _converged_histories(scene):
+    r = run(RunConfig.create(scene, T=2.0, cells=40, degree=3, slabs=4))
+    return r.solver["residual_histories"]
+
+
+@pytest.mark.parametrize("scene", ["curl3d", "curl2d", "curl2d-ufl"])
+def test_newton_converges_quadratically(scene):
+    """rho_{k+1} <= 10 rho_k^2 for the normalised residuals once rho_k < 0.1, above round-off."""
+    for history in _converged_histories(scene):
+        r = np.array(history)
+        rho = r / r[0]
+        checked = 0
+        for k in range(len(r) - 1):
+            if rho[k] < 0.1 and r[k + 1] > 1e-12:
+                assert rho[k + 1] <= 10 * rho[k] ** 2, history
+                checked += 1
+        assert checked >= 1, history
+
+
+def test_lifted_newton_ends_quadratically():
+    """The lifted saddle needs backtracking far away; near the solution the rate is quadratic."""
+    for history in _converged_histories("curl2d-lifted"):
+        r = np.array(history)
+        tail = [k for k in range(len(r) - 1) if r[k] < 1e-3 and r[k + 1] > 1e-12]
+        assert tail, history
+        assert all(r[k + 1] <= 1e3 * r[k] ** 2 for k in tail), history
+
+
+@pytest.mark.serial
+@pytest.mark.parametrize("scene", ["curl3d", "curl2d", "curl2d-ufl", "curl2d-lifted"])
+def test_jacobian_symmetric(scene):
+    """At a converged, non-zero dual state the assembled Jacobian is symmetric to round-off."""
+    cls = get_scene(scene)
+    problem = SlabProblem(cls(), degree=2, cells=8, comm=MPI.COMM_SELF)
+    problem.set_slab(np.array(cls.default_x0), np.array(cls.default_v0), 0.5)
+    solver = NewtonSlabSolver(problem, "test_sym_", {})
+    solver.solve()
+    assert np.abs(problem.w.x.array).max() > 1e-6
+    A = fem_petsc.assemble_matrix(fem.form(problem.jacobian), bcs=problem.bcs)
+    A.assemble()
+    dense = A.convert("dense").getDenseArray()
+    assert np.abs(dense - dense.T).max() <= 1e-12 * np.abs(dense).max()
+
+
+@pytest.mark.mpi
+def test_hand_derived_lifted_and_user_defined_agree():
+    cfg = dict(T=2.0, cells=40, degree=3, slabs=4)
+    hand, ufl_, lifted = (run(RunConfig.create(s, **cfg)) for s in
+                          ("curl2d", "curl2d-ufl", "curl2d-lifted"))
+    assert np.abs(hand.x - ufl_.x).max() < 1e-11  # same discrete problem, G by hand or by UFL
+    assert np.abs(hand.x - lifted.x).max() < 1e-6  # different discretisation, same motion
+    h3, u3 = (run(RunConfig.create(s, T=2.0, cells=40, degree=3)) for s in
+              ("curl3d", "curl3d-ufl"))
+    assert np.abs(h3.x - u3.x).max() < 1e-11  # explicit A(eta)^-1 vs implicit UFL-derived path
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("scene", ["curl2d", "curl2d-lifted"])
+def test_parallel_matches_serial(scene):
+    cfg = RunConfig.create(scene, T=2.0, cells=20, degree=3, slabs=4)
+    par, ser = run(cfg, MPI.COMM_WORLD), run(cfg, MPI.COMM_SELF)
+    assert np.abs(par.x - ser.x).max() <= 1e-10 * np.abs(ser.x).max()
+    assert np.abs(par.v - ser.v).max() <= 1e-10 * np.abs(ser.v).max()
+
+
+@pytest.mark.mpi
+def test_blow_up_exits_3_keeps_completed_slabs_and_writes_no_nan(tmp_path_factory, capsys):
+    comm = MPI.COMM_WORLD
+    out = comm.bcast(str(tmp_path_factory.mktemp("blowup")) if comm.rank == 0 else None)
+    status = main(["run", "curl3d", "--T", "12", "--slabs", "24", "--cells", "20", "--degree",
+                   "3", "--json", "--out", out])
+    assert status == 3
+    captured = capsys.readouterr()
+    if comm.rank != 0:
+        return
+    assert captured.err.count("\n") == 1 and "slab" in captured.err
+    data = json.loads(captured.out)  # strict JSON: no NaN
+    assert data["status"] == "failed" and "slab" in data["message"]
+    assert 0 < data["t"][-1] < 12 and np.isfinite(data["x"]).all()
+    with h5py.File(f"{out}/curl3d.h5") as h5:
+        steps = [k for k in h5 if k.startswith("step")]
+        assert len(steps) == len(data["slab_lengths"]) > 0
+        assert all(np.isfinite(h5[f"{s}/x_hat"][()]).all() for s in steps)
+
+
+@pytest.mark.serial
+def test_singular_dtp_map_stops_with_time():
+    with pytest.raises(SolveError) as info:
+        run(RunConfig.create("curl2d", {"k": "20"}, T=2.0, cells=20))
+    assert "slab 0" in str(info.value) and "t = " in str(info.value)
+    assert "smaller slabs" in str(info.value)
