@@ -45,7 +45,12 @@ class ForceScene(Scene):
         return values
 
     def force_numpy(self, x: np.ndarray) -> np.ndarray:
-        raise NotImplementedError
+        """F(x) for the reference. By default the scene's UFL force evaluated by UFL on numbers, so
+        a user-defined force is written once; built-in scenes override it with hand-written numpy,
+        which keeps their reference independent of the forms."""
+        c = {k: (float(v) if np.ndim(v) == 0 else v) for k, v in self.constants().items()}
+        F = self.forms.force(np.asarray(x, dtype=float), c)
+        return np.array([F[i]((0.0,)) for i in range(self.n)])
 
     def reference(self, x0, v0) -> IVPFlow:
         return IVPFlow(lambda x: self.force_numpy(x) / self.m, x0, v0)

@@ -1,0 +1,61 @@
+"""A user-defined force: only F (UFL) and H are written; everything else comes from the library."""
+import dataclasses
+from typing import ClassVar
+
+import numpy as np
+import pytest
+import ufl
+
+from fem_dual import RunConfig, run
+from fem_dual.scenes import SCENES, ForceScene, register
+from forms import implicit
+from forms.predual import isotropic_quadratic
+from helpers import observed_rates
+
+
+def swirl_force(x, c):
+    """A curl force: curl F = a (1 + 3 y^2) != 0."""
+    return ufl.as_vector([-x[0] - c["a"] * x[1] ** 3, c["a"] * x[0] - x[1]])
+
+
+def swirl_h(dx, dv, c):
+    return isotropic_quadratic(dx, dv, c["alpha"], c["beta"])
+
+
+@dataclasses.dataclass(frozen=True)
+class Swirl(ForceScene):
+    name: ClassVar[str] = "test-swirl"
+    n: ClassVar[int] = 2
+    forms: ClassVar = implicit.make(swirl_force, swirl_h)
+    default_T: ClassVar[float] = 4.0
+    default_x0: ClassVar[tuple] = (1.0, 0.0)
+    default_v0: ClassVar[tuple] = (0.0, 0.5)
+    a: float = 0.5
+
+
+@pytest.fixture(scope="module", autouse=True)
+def registered():
+    register(Swirl)
+    yield
+    SCENES.pop(Swirl.name)
+
+
+@pytest.mark.mpi
+def test_user_force_converges_to_the_reference():
+    errors = [run(RunConfig.create("test-swirl", cells=c, degree=3, slabs=4)).error["x_max"]
+              for c in (10, 20, 40, 80)]
+    assert errors[-1] < 1e-6
+    assert np.all(observed_rates(errors) > 2.85), errors
+
+
+def test_reference_of_a_user_force_evaluates_its_ufl():
+    scene = Swirl.from_params({"a": "0.7"})
+    x = np.array([0.3, -0.8])
+    expected = np.array([-x[0] - 0.7 * x[1] ** 3, 0.7 * x[0] - x[1]])
+    assert np.allclose(scene.force_numpy(x), expected, rtol=1e-15, atol=0)
+
+
+def test_user_force_parameters_are_validated():
+    from fem_dual import InputError
+    with pytest.raises(InputError, match="beta"):
+        Swirl.from_params({"beta": "0"})
