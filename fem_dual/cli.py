@@ -21,7 +21,8 @@ from fem_dual.scenes import SCENES
 __all__ = ["main", "build_parser"]
 
 # Options whose value may start with "-" (negative numbers): "--x0 -1,2" is joined to "--x0=-1,2".
-_VALUE_OPTIONS = ("--T", "--x0", "--v0", "--param", "--cells", "--degree", "--slabs")
+_VALUE_OPTIONS = ("--T", "--x0", "--v0", "--param", "--cells", "--degree", "--slabs",
+                  "--max-halvings")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -51,6 +52,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="scene parameter (repeatable); matrices as a11,a12,... or a scalar")
     r.add_argument("--x0", help="initial position a,b,...")
     r.add_argument("--v0", help="initial velocity a,b,...")
+    r.add_argument("--max-halvings", default="6", help="nonlinear scenes: a slab whose Newton "
+                   "fails is retried halved, at most this many times (default 6)")
     r.add_argument("--out", help="write XDMF output into this directory")
     r.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     r.add_argument("--petsc-option", action="append", default=[], metavar="KEY=VALUE",
@@ -116,8 +119,8 @@ def main(argv: Optional[Sequence[str]] = None, comm: MPI.Comm = MPI.COMM_WORLD) 
         petsc = dict(_key_value(p, "--petsc-option") for p in args.petsc_option)
         config = RunConfig.create(args.scene, params, T=args.T, cells=args.cells,
                                   degree=args.degree, slabs=args.slabs, x0=args.x0, v0=args.v0,
-                                  out=args.out, petsc=petsc)
-        result = run(config, comm)
+                                  out=args.out, petsc=petsc, max_halvings=args.max_halvings)
+        result = run(config, comm, progress=not args.json and sys.stderr.isatty())
     except InputError as exc:
         print0(comm, f"fem-dual: error: {exc}", file=sys.stderr)
         return InputError.exit_status

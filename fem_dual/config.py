@@ -20,7 +20,7 @@ MAX_DEGREE = 10  # equispaced Lagrange bases beyond this are too ill-conditioned
 Number = Union[int, float, str]
 
 
-def _positive_int(name: str, value: Number) -> int:
+def _whole_number(name: str, value: Number, minimum: int = 1) -> int:
     text = str(value).strip()
     try:
         as_float = float(text)
@@ -28,8 +28,8 @@ def _positive_int(name: str, value: Number) -> int:
         raise InputError(f"{name}={text!r} is not a whole number") from None
     if not math.isfinite(as_float) or as_float != int(as_float):
         raise InputError(f"{name}={text!r} is not a whole number")
-    if int(as_float) < 1:
-        raise InputError(f"{name}={text!r} must be at least 1")
+    if int(as_float) < minimum:
+        raise InputError(f"{name}={text!r} must be at least {minimum}")
     return int(as_float)
 
 
@@ -46,6 +46,7 @@ class RunConfig:
     v0: np.ndarray
     out: Optional[Path] = None
     petsc: Dict[str, str] = field(default_factory=dict)
+    max_halvings: int = 6
 
     @classmethod
     def create(cls, scene: Union[str, Scene], params: Optional[Mapping[str, object]] = None, *,
@@ -53,7 +54,8 @@ class RunConfig:
                slabs: Number = 1, x0: Optional[Union[str, Sequence[float]]] = None,
                v0: Optional[Union[str, Sequence[float]]] = None,
                out: Optional[Union[str, Path]] = None,
-               petsc: Optional[Mapping[str, str]] = None) -> "RunConfig":
+               petsc: Optional[Mapping[str, str]] = None,
+               max_halvings: Number = 6) -> "RunConfig":
         """Validate every input; raises InputError naming the first bad value."""
         if isinstance(scene, str):
             scene = get_scene(scene).from_params(params)
@@ -62,9 +64,9 @@ class RunConfig:
         T_value = scene.default_T if T is None else parse_number("T", T)
         if not T_value > 0:
             raise InputError(f"T={T!r} must be positive")
-        cells_ = _positive_int("cells", cells)
-        degree_ = _positive_int("degree", degree)
-        slabs_ = _positive_int("slabs", slabs)
+        cells_ = _whole_number("cells", cells)
+        degree_ = _whole_number("degree", degree)
+        slabs_ = _whole_number("slabs", slabs)
         if degree_ > MAX_DEGREE:
             raise InputError(f"degree={degree_} is too large (at most {MAX_DEGREE})")
         if cells_ * slabs_ > MAX_VERTICES:
@@ -79,5 +81,8 @@ class RunConfig:
             if not key or any(ch.isspace() for ch in key):
                 raise InputError(f"PETSc option {key!r} is not an option name")
             petsc_[key] = str(value)
+        halvings = _whole_number("max-halvings", max_halvings, minimum=0)
+        if halvings > 30:
+            raise InputError(f"max-halvings={max_halvings!r} is too large (at most 30)")
         return cls(scene, T_value, cells_, degree_, slabs_, x0_, v0_,
-                   None if out is None else Path(out), petsc_)
+                   None if out is None else Path(out), petsc_, halvings)

@@ -23,7 +23,7 @@ from fem_dual.newton import NewtonSlabSolver
 from fem_dual.problem import SlabProblem
 from fem_dual.recovery import VertexSampler, VertexValues
 from fem_dual.solvers import LinearSlabSolver, solver_prefix
-from meshes import partition
+from meshes import SlabSchedule
 
 __all__ = ["RunResult", "run"]
 
@@ -135,8 +135,18 @@ def _solver_record(solver, prefix: str) -> Dict[str, Any]:
     return {"kind": "ksp", "prefix": prefix, "ksp_iterations": list(solver.iterations)}
 
 
-def run(config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD) -> RunResult:
+def _progress_bar(T: float):
+    from tqdm import tqdm
+
+    return tqdm(total=T, unit="t", desc="slabs", leave=False,
+                bar_format="{l_bar}{bar}| t={n:.4g}/{total:.4g} [{elapsed}<{remaining}, {rate_fmt}]")
+
+
+def run(config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD, progress: bool = False) -> RunResult:
     """Solve the dual problem slab by slab, recover the primal motion, compare with the reference.
+
+    Nonlinear scenes retry a slab whose Newton (or DtP map) fails with half its length, up to
+    `config.max_halvings` times; `progress` shows a bar over the slabs on stderr (rank 0).
 
     Raises:
         SolveError: a slab failed; `partial` holds the result of the slabs completed before it,
@@ -167,38 +177,51 @@ def run(config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD) -> RunResult:
     series: Optional[XdmfSeries] = None
     timings = {"compile_s": compile_s, "solve_s": 0.0, "recovery_s": 0.0, "output_s": 0.0}
     lengths: List[float] = []
+    retries: List[Dict[str, Any]] = []
     failure: Optional[SolveError] = None
     state = (config.x0, config.v0)
 
-    for k, (t0, dt) in enumerate(partition(config.T, config.slabs)):
+    halvings = 0 if scene.linear else config.max_halvings  # a linear solve does not diverge
+    schedule = SlabSchedule(config.T, config.slabs, halvings)
+    bar = _progress_bar(config.T) if (progress and root) else None
+    k = 0
+    while not schedule.done():
+        t0, dt = schedule.current()
         problem.set_slab(state[0], state[1], dt, t0)
         t1 = time.perf_counter()
         try:
             solver.solve()
             t2 = time.perf_counter()
             vals = sampler()
+            if not bcast(comm, vals.finite() if root else None):
+                raise SolveError("the recovered state is not finite; try more slabs or cells")
         except SolveError as exc:
+            if schedule.halve():
+                retries.append({"t0": t0, "dt": dt, "reason": str(exc)})
+                continue
             failure = SolveError(f"slab {k} (t = {t0:g} .. {t0 + dt:g}): {exc}", slab=k)
             break
-        finite = bcast(comm, vals.finite() if root else None)
         timings["solve_s"] += t2 - t1
         timings["recovery_s"] += time.perf_counter() - t2
-        if not finite:
-            failure = SolveError(f"slab {k} (t = {t0:g} .. {t0 + dt:g}): the recovered state is "
-                                 "not finite; try more slabs or cells", slab=k)
-            break
         if root:
             acc.add(t0, dt, vals, first=(k == 0))
             if outdir is not None:
                 t3 = time.perf_counter()
                 if series is None:
-                    series = XdmfSeries(outdir.file(f"{scene.name}.xdmf"), dt * vals.s)
+                    series = XdmfSeries(outdir.file(f"{scene.name}.xdmf"),
+                                        config.T / config.slabs * vals.s)
                 series.write(t0, {"t": t0 + dt * vals.s, "xi": vals.xi, "eta": vals.eta,
                                   "x_hat": vals.x, "v_hat": vals.v,
                                   "hamiltonian": vals.hamiltonian})
                 timings["output_s"] += time.perf_counter() - t3
+            if bar is not None:
+                bar.update(dt)
         lengths.append(dt)
         state = bcast(comm, (vals.x[-1].copy(), vals.v[-1].copy()) if root else None)
+        schedule.accept()
+        k += 1
+    if bar is not None:
+        bar.close()
 
     result = None
     if root:
@@ -221,6 +244,7 @@ def run(config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD) -> RunResult:
             error=acc.error(), hamiltonian=acc.hamiltonian(), timings=timings,
             solver=_solver_record(solver, solver_prefix(scene.name)),
             slab_lengths=lengths, output_files=files)
+        result.solver["halved_slabs"] = retries
         if failure is not None:
             result.status, result.message = "failed", str(failure)
     result = bcast(comm, result)

@@ -13,7 +13,7 @@ import numpy as np
 from dolfinx import mesh
 from mpi4py import MPI
 
-__all__ = ["START", "END", "SlabMesh", "slab_mesh", "partition"]
+__all__ = ["START", "END", "SlabMesh", "SlabSchedule", "slab_mesh", "partition"]
 
 START = 1  # tag of the vertex s = 0, where the initial conditions enter the action
 END = 2  # tag of the vertex s = 1, where xi = eta = 0 (Dirichlet)
@@ -59,3 +59,39 @@ def partition(T: float, slabs: int) -> List[Tuple[float, float]]:
     """
     dt = T / slabs
     return [(k * T / slabs, dt) for k in range(slabs)]
+
+
+class SlabSchedule:
+    """Slabs of [0, T]: nominally `slabs` equal ones; a failed slab may be halved up to
+    `max_halvings` times (minimum length T / (slabs 2^max_halvings)), and after a success the
+    length grows back towards the nominal one.
+
+    Positions are kept as integers in units of the minimum length, so start times carry no
+    accumulated round-off and equal slabs start exactly at k T / slabs.
+    """
+
+    def __init__(self, T: float, slabs: int, max_halvings: int = 0):
+        self.T = T
+        self.nominal = 2**max_halvings
+        self.total = slabs * self.nominal
+        self.pos = 0
+        self.length = self.nominal
+
+    def done(self) -> bool:
+        return self.pos >= self.total
+
+    def current(self) -> Tuple[float, float]:
+        """(t0, dt) of the slab to solve next."""
+        length = min(self.length, self.total - self.pos)
+        return self.pos * self.T / self.total, length * self.T / self.total
+
+    def accept(self) -> None:
+        self.pos += min(self.length, self.total - self.pos)
+        self.length = min(2 * self.length, self.nominal)
+
+    def halve(self) -> bool:
+        """Halve the current slab; False when it is already at the minimum length."""
+        if self.length == 1:
+            return False
+        self.length //= 2
+        return True

@@ -39,6 +39,9 @@ BAD_INPUTS = [
     (["run", "ziegler", "--param", "B=-1"], "B="),
     (["run", "ziegler", "--param", "B=1,2,3"], "B="),
     (["run", "ziegler", "--cells", "100000000", "--slabs", "10"], "too large"),
+    (["run", "curl2d", "--max-halvings", "-2"], "max-halvings"),
+    (["run", "curl3d", "--param", "alpha=0"], "alpha"),
+    (["run", "curl2d", "--x0", "1"], "x0"),
 ]
 
 
@@ -124,3 +127,18 @@ def test_xdmf_output_matches_json(tmp_path_factory, capsys):
     traj = meshio.read(out / "ziegler_trajectory.xdmf")
     assert np.allclose(traj.points[:, :2], data["x"])
     assert np.allclose(traj.point_data["t"], data["t"])
+
+
+@pytest.mark.serial
+def test_progress_bar_goes_to_stderr_and_never_with_json(capsys, monkeypatch):
+    from fem_dual import RunConfig, run
+    run(RunConfig.create("ziegler", cells=4, slabs=5, T=1.0), progress=True)
+    captured = capsys.readouterr()
+    assert captured.out == "" and "slabs" in captured.err
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True, raising=False)
+    assert main(["run", "ziegler", "--cells", "4", "--slabs", "5", "--T", "1", "--json"]) == 0
+    captured = capsys.readouterr()
+    json.loads(captured.out)
+    assert captured.err == ""
+    assert main(["run", "ziegler", "--cells", "4", "--slabs", "5", "--T", "1"]) == 0
+    assert "slabs" in capsys.readouterr().err  # the terminal case shows the bar

@@ -137,8 +137,22 @@ def test_blow_up_exits_3_keeps_completed_slabs_and_writes_no_nan(tmp_path_factor
 
 
 @pytest.mark.serial
-def test_singular_dtp_map_stops_with_time():
+def test_dtp_map_without_solution_stops_with_slab_and_time():
     with pytest.raises(SolveError) as info:
-        run(RunConfig.create("curl2d", {"k": "20"}, T=2.0, cells=20))
+        run(RunConfig.create("curl2d", {"k": "20"}, T=2.0, cells=20, max_halvings=0))
     assert "slab 0" in str(info.value) and "t = " in str(info.value)
     assert "smaller slabs" in str(info.value)
+    assert info.value.partial.status == "failed" and len(info.value.partial.t) == 0
+
+
+@pytest.mark.mpi
+def test_slab_halving_recovers_a_failing_slab():
+    """A slab length that fails outright (max_halvings=0) succeeds when halving is allowed."""
+    args = dict(T=3.0, cells=40, degree=3, slabs=3, x0="0.5,-0.4", v0="0.2,0.1")
+    params = {"k": "2", "m": "0.5"}
+    with pytest.raises(SolveError):
+        run(RunConfig.create("curl2d", params, max_halvings=0, **args))
+    r = run(RunConfig.create("curl2d", params, **args))
+    assert r.status == "ok" and r.error["x_max"] < 1e-5
+    assert min(r.slab_lengths) < 1.0 and sum(r.slab_lengths) == pytest.approx(3.0)
+    assert r.solver["halved_slabs"]

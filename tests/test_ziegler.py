@@ -118,3 +118,14 @@ def test_reference_matches_an_ode_solver():
     M, K = scene.mass_matrix(), scene.stiffness_matrix()
     xs, vs = IVPFlow(lambda q: -np.linalg.solve(M, K @ q), x0, v0)(t)
     assert np.abs(x - xs).max() < 1e-10 and np.abs(v - vs).max() < 1e-10
+
+
+@pytest.mark.mpi
+def test_cg_with_preconditioner_by_options_matches_lu():
+    """The SPD slab system can be solved by CG, selected under the solver's prefix."""
+    lu = run(RunConfig.create("ziegler", cells=40, degree=3, T=6.0, slabs=3))
+    cg = run(RunConfig.create("ziegler", cells=40, degree=3, T=6.0, slabs=3,
+                              petsc={"ksp_type": "cg", "pc_type": "jacobi", "ksp_rtol": "1e-14",
+                                     "ksp_max_it": "5000"}))
+    assert min(cg.solver["ksp_iterations"]) > 1  # really iterative
+    assert np.abs(cg.x - lu.x).max() < 1e-9 * np.abs(lu.x).max()
