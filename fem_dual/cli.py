@@ -58,6 +58,18 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     r.add_argument("--petsc-option", action="append", default=[], metavar="KEY=VALUE",
                    help="PETSc option under the solver prefix dual_<scene>_, e.g. ksp_type=cg")
+    b = sub.add_parser("bench", help="error against run time: fem-dual beside RK45, DOP853, Radau")
+    b.add_argument("scene", metavar="SCENE", help=f"one of: {', '.join(SCENES)}")
+    b.add_argument("--T", help="final time (default: the scene's)")
+    b.add_argument("--slabs", default="1", help="slabs of every fem-dual run (default 1)")
+    b.add_argument("--cells", default="2,4,8,16,32", help="cells per slab to sweep")
+    b.add_argument("--degrees", default="2,3,4", help="degrees to sweep")
+    b.add_argument("--repeats", default="3", help="timed repeats per configuration (median)")
+    b.add_argument("--param", action="append", default=[], metavar="NAME=VALUE")
+    b.add_argument("--x0", help="initial position a,b,...")
+    b.add_argument("--v0", help="initial velocity a,b,...")
+    b.add_argument("--out", default=".", help="directory for bench.csv and bench.png")
+    b.add_argument("--json", action="store_true", help='print {"rows": [...]} on stdout')
     sub.add_parser("scenes", help="list the scenes, their parameters and defaults")
     return parser
 
@@ -108,6 +120,41 @@ def _list_scenes() -> str:
     return "\n".join(lines)
 
 
+def _int_list(name: str, text: str) -> List[int]:
+    from fem_dual.config import _whole_number
+
+    return [_whole_number(name, item) for item in text.split(",")]
+
+
+def _bench(args, params, comm: MPI.Comm) -> int:
+    from pathlib import Path
+
+    from fem_dual import bench as bm
+    from fem_dual.output import check_output_dir
+
+    base = RunConfig.create(args.scene, params, T=args.T, slabs=args.slabs, x0=args.x0,
+                            v0=args.v0)
+    degrees, cells = _int_list("degrees", args.degrees), _int_list("cells", args.cells)
+    repeats = _int_list("repeats", args.repeats)[0]
+    out = None
+    if comm.rank == 0:
+        out = check_output_dir(args.out)
+    rows = bm.bench(base, degrees, cells, repeats=repeats, comm=comm)
+    if comm.rank == 0:
+        bm.write_csv(rows, out / "bench.csv")
+        bm.plot(rows, out / "bench.png", f"{args.scene}, T = {base.T:g}")
+        if args.json:
+            print(json.dumps({"rows": rows}, allow_nan=False))
+        else:
+            print(bm.table(rows))
+            for target in (1e-4, 1e-6, 1e-8):
+                ratio = bm.ratio_at(rows, target)
+                text = "not reached by both" if ratio is None else f"{ratio:.2f}"
+                print(f"wall-time ratio fem-dual / DOP853 at max error <= {target:g}: {text}")
+            print(f"wrote {out / 'bench.csv'}, {out / 'bench.png'}")
+    return 0
+
+
 def main(argv: Optional[Sequence[str]] = None, comm: MPI.Comm = MPI.COMM_WORLD) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
@@ -116,6 +163,8 @@ def main(argv: Optional[Sequence[str]] = None, comm: MPI.Comm = MPI.COMM_WORLD) 
             print0(comm, _list_scenes())
             return 0
         params = dict(_key_value(p, "--param") for p in args.param)
+        if args.command == "bench":
+            return _bench(args, params, comm)
         petsc = dict(_key_value(p, "--petsc-option") for p in args.petsc_option)
         config = RunConfig.create(args.scene, params, T=args.T, cells=args.cells,
                                   degree=args.degree, slabs=args.slabs, x0=args.x0, v0=args.v0,

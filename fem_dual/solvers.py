@@ -73,6 +73,7 @@ class LinearSlabSolver:
             self.ksp.setFromOptions()
         self._assembled_dt: Optional[float] = None
         self.iterations = []
+        self.assemblies = 0
 
     def assemble_matrix(self) -> None:
         self.A.zeroEntries()
@@ -80,6 +81,7 @@ class LinearSlabSolver:
         self.A.assemble()
         self.ksp.setOperators(self.A)  # new values: refactor at the next solve
         self._assembled_dt = float(self.problem.dt.value)
+        self.assemblies += 1
 
     def solve(self) -> None:
         """Solve the current slab into problem.w; raises SolveError if KSP fails."""

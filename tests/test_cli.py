@@ -142,3 +142,24 @@ def test_progress_bar_goes_to_stderr_and_never_with_json(capsys, monkeypatch):
     assert captured.err == ""
     assert main(["run", "ziegler", "--cells", "4", "--slabs", "5", "--T", "1"]) == 0
     assert "slabs" in capsys.readouterr().err  # the terminal case shows the bar
+
+
+@pytest.mark.serial
+def test_bench_runs_on_a_tiny_configuration(tmp_path, capsys):
+    import csv
+
+    assert main(["bench", "curl3d", "--T", "0.5", "--cells", "2,4", "--degrees", "2",
+                 "--repeats", "1", "--out", str(tmp_path), "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)["rows"]
+    methods = {r["method"] for r in rows}
+    assert methods == {"fem-dual", "RK45", "DOP853", "Radau"}
+    for r in rows:
+        assert set(r) >= {"method", "degree", "cells", "slabs", "rtol", "max_error",
+                          "final_error", "wall_s"}
+        assert r["wall_s"] > 0 and np.isfinite(r["max_error"])
+    fem = [r for r in rows if r["method"] == "fem-dual"]
+    assert fem[1]["max_error"] < fem[0]["max_error"]  # refinement pays
+    with open(tmp_path / "bench.csv") as f:
+        assert len(list(csv.DictReader(f))) == len(rows)
+    png = (tmp_path / "bench.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000

@@ -129,3 +129,22 @@ def test_cg_with_preconditioner_by_options_matches_lu():
                                      "ksp_max_it": "5000"}))
     assert min(cg.solver["ksp_iterations"]) > 1  # really iterative
     assert np.abs(cg.x - lu.x).max() < 1e-9 * np.abs(lu.x).max()
+
+
+@pytest.mark.mpi
+def test_factorisation_reuse_equals_reassembly():
+    """Equal slabs reuse one assembled, factored matrix; a fresh solver per slab agrees."""
+    from fem_dual.solvers import LinearSlabSolver
+
+    scene = get_scene("ziegler")()
+    problem = SlabProblem(scene, degree=3, cells=12)
+    reused = LinearSlabSolver(problem, "test_reuse_")
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        x0, v0 = rng.standard_normal(2), rng.standard_normal(2)
+        problem.set_slab(x0, v0, 1.5)
+        reused.solve()
+        first = problem.w.x.array.copy()
+        LinearSlabSolver(problem, "test_fresh_").solve()
+        assert np.allclose(problem.w.x.array, first, rtol=1e-12, atol=1e-14)
+    assert reused.assemblies == 1

@@ -1,0 +1,182 @@
+"""`fem-dual bench`: error against run time, fem-dual beside the integrators a user would pick.
+
+One problem, one reference (the scene's: matrix exponential or DOP853 at 1e-13). Rows:
+fem-dual at degrees 2, 3, 4 over a range of cells per slab, and scipy's RK45, DOP853 and Radau over
+a range of tolerances, measured in the same process. Wall times are medians of `repeats` runs;
+form compilation (fem-dual's first run of each configuration) and the reference are excluded and
+the compilation time is reported on its own.
+"""
+from __future__ import annotations
+
+import csv
+import math
+import time
+from pathlib import Path
+from typing import Dict, List, Optional, Sequence
+
+import numpy as np
+from mpi4py import MPI
+from scipy.integrate import solve_ivp
+
+from fem_dual.config import RunConfig
+from fem_dual.driver import run
+from fem_dual.scenes import Scene
+
+__all__ = ["COLUMNS", "bench", "write_csv", "read_csv", "plot", "table", "ratio_at"]
+
+COLUMNS = ["method", "degree", "cells", "slabs", "rtol", "max_error", "final_error", "wall_s",
+           "compile_s", "samples"]
+TOLERANCES = {"RK45": [1e-4, 1e-6, 1e-8, 1e-10], "DOP853": [1e-6, 1e-8, 1e-10, 1e-12],
+              "Radau": [1e-4, 1e-6, 1e-8]}
+
+
+def _state_error(x, v, x_ref, v_ref) -> np.ndarray:
+    return np.maximum(np.abs(x - x_ref).max(axis=1), np.abs(v - v_ref).max(axis=1))
+
+
+def _fem_rows(base: RunConfig, degrees: Sequence[int], cells: Sequence[int], repeats: int,
+              comm: MPI.Comm) -> List[Dict]:
+    rows = []
+    for degree in degrees:
+        for n in cells:
+            config = RunConfig.create(base.scene, T=base.T, cells=n, degree=degree,
+                                      slabs=base.slabs, x0=base.x0, v0=base.v0)
+            walls, compile_s, result = [], 0.0, None
+            for i in range(repeats + 1):  # the first run compiles (and warms the caches)
+                result = run(config, comm)
+                method_s = result.timings["total_s"] - result.timings["reference_s"]
+                if i == 0:
+                    compile_s = result.timings["compile_s"]
+                else:
+                    walls.append(method_s - result.timings["compile_s"])
+            flow = base.scene.reference(base.x0, base.v0)
+            x_ref, v_ref = flow(result.t)
+            err = _state_error(result.x, result.v, x_ref, v_ref)
+            rows.append({"method": "fem-dual", "degree": degree, "cells": n, "slabs": base.slabs,
+                         "rtol": None, "max_error": float(err.max()),
+                         "final_error": float(err[-1]), "wall_s": float(np.median(walls)),
+                         "compile_s": compile_s, "samples": len(result.t)})
+    return rows
+
+
+def _ode_rows(scene: Scene, T: float, x0: np.ndarray, v0: np.ndarray, samples: int,
+              repeats: int) -> List[Dict]:
+    n = scene.n
+    Minv = np.linalg.inv(scene.mass_matrix())
+    if scene.linear:
+        K = scene.stiffness_matrix()
+        A = np.block([[np.zeros((n, n)), np.eye(n)], [-Minv @ K, np.zeros((n, n))]])
+        rhs = lambda _t, z: A @ z  # noqa: E731
+        jac = A
+    else:
+        rhs = lambda _t, z: np.concatenate([z[n:], Minv @ scene.force_numpy(z[:n])])  # noqa
+        jac = None
+    t = np.linspace(0.0, T, samples)
+    x_ref, v_ref = scene.reference(x0, v0)(t)
+    z0 = np.concatenate([x0, v0])
+    rows = []
+    for method, tolerances in TOLERANCES.items():
+        for tol in tolerances:
+            walls, sol = [], None
+            for _ in range(repeats):
+                tic = time.perf_counter()
+                kwargs = {"jac": jac} if (method == "Radau" and jac is not None) else {}
+                sol = solve_ivp(rhs, (0.0, T), z0, method=method, t_eval=t, rtol=tol,
+                                atol=tol, **kwargs)
+                walls.append(time.perf_counter() - tic)
+            if sol.status != 0:
+                continue
+            err = _state_error(sol.y[:n].T, sol.y[n:].T, x_ref, v_ref)
+            rows.append({"method": method, "degree": None, "cells": None, "slabs": None,
+                         "rtol": tol, "max_error": float(err.max()), "final_error": float(err[-1]),
+                         "wall_s": float(np.median(walls)), "compile_s": 0.0, "samples": samples})
+    return rows
+
+
+def bench(base: RunConfig, degrees: Sequence[int] = (2, 3, 4),
+          cells: Sequence[int] = (2, 4, 8, 16, 32), repeats: int = 3, samples: int = 1001,
+          comm: MPI.Comm = MPI.COMM_WORLD) -> List[Dict]:
+    """All rows of the study (the same list on every rank)."""
+    rows = _fem_rows(base, degrees, cells, repeats, comm)
+    if comm.rank == 0:
+        rows += _ode_rows(base.scene, base.T, base.x0, base.v0, samples, repeats)
+    return comm.bcast(rows if comm.rank == 0 else None)
+
+
+def write_csv(rows: List[Dict], path: Path) -> None:
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=COLUMNS)
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({k: ("" if row[k] is None else row[k]) for k in COLUMNS})
+
+
+def read_csv(path: Path) -> List[Dict]:
+    """Rows of a bench.csv, typed as `bench` returns them."""
+    rows = []
+    with open(path) as f:
+        for raw in csv.DictReader(f):
+            row: Dict = {}
+            for key, text in raw.items():
+                if text == "":
+                    row[key] = None
+                elif key == "method":
+                    row[key] = text
+                elif key in ("degree", "cells", "slabs", "samples"):
+                    row[key] = int(text)
+                else:
+                    row[key] = float(text)
+            rows.append(row)
+    return rows
+
+
+def plot(rows: List[Dict], path: Path, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 5))
+    curves: Dict[str, List[Dict]] = {}
+    for row in rows:
+        label = (f"fem-dual p={row['degree']}" if row["method"] == "fem-dual" else row["method"])
+        curves.setdefault(label, []).append(row)
+    for label, pts in curves.items():
+        # in order of resolution: cells up, or tolerance down
+        pts = sorted(pts, key=lambda r: r["cells"] if r["cells"] is not None else -r["rtol"])
+        ax.loglog([r["wall_s"] for r in pts], [max(r["max_error"], 1e-17) for r in pts],
+                  "o-" if label.startswith("fem") else "s--", label=label)
+    if max(r["max_error"] for r in rows) > 10:  # diverged configurations: keep the scale readable
+        ax.set_ylim(top=10)
+    ax.set_xlabel("wall time [s] (median, compilation excluded)")
+    ax.set_ylabel("max error over the sample times")
+    ax.set_title(title)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def table(rows: List[Dict]) -> str:
+    head = (f"{'method':9s} {'degree':>6s} {'cells':>6s} {'slabs':>6s} {'rtol':>8s} "
+            f"{'max_error':>10s} {'final_error':>11s} {'wall_s':>9s}")
+    lines = [head]
+    for r in rows:
+        def f(v, fmt):
+            width = int("".join(ch for ch in fmt if ch.isdigit())[:1] or 0)
+            return "-".rjust(width) if v is None else format(v, fmt)
+        lines.append(f"{r['method']:9s} {f(r['degree'], '6d')} {f(r['cells'], '6d')} "
+                     f"{f(r['slabs'], '6d')} {f(r['rtol'], '8.0e')} {r['max_error']:10.2e} "
+                     f"{r['final_error']:11.2e} {r['wall_s']:9.4f}")
+    return "\n".join(lines)
+
+
+def ratio_at(rows: List[Dict], target: float, peer: str = "DOP853") -> Optional[float]:
+    """fem-dual's fastest wall time reaching max_error <= target over the peer's (None if either
+    never reaches it)."""
+    def fastest(method):
+        times = [r["wall_s"] for r in rows if r["method"] == method and r["max_error"] <= target]
+        return min(times) if times else math.nan
+    ours, theirs = fastest("fem-dual"), fastest(peer)
+    return None if math.isnan(ours) or math.isnan(theirs) else ours / theirs
