@@ -25,7 +25,7 @@ system-packages:
 	if [ -n "$$missing" ]; then \
 	  echo "installing Debian packages:$$missing"; \
 	  $(SUDO) apt-get update -qq < /dev/null && \
-	  $(SUDO) apt-get install -y -qq --no-install-recommends $$missing < /dev/null; \
+	  $(SUDO) apt-get install -y -qq $$missing < /dev/null; \
 	fi
 
 $(VENV)/.installed: pyproject.toml | system-packages

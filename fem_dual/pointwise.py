@@ -17,9 +17,8 @@ from typing import Callable, Optional
 import numpy as np
 import ufl
 from dolfinx import fem
-from mpi4py import MPI
-
 from fem_dual.compat import CellPointEvaluator
+from fem_dual.mpi import allreduce
 
 __all__ = ["PointwiseDtP", "SINGULAR_TOL"]
 
@@ -92,7 +91,7 @@ class PointwiseDtP:
                        f"did not converge in {max_it} iterations); use smaller slabs or larger "
                        "alpha")
         self.iterations = it
-        message = comm.allreduce(problem or "", op=MPI.MAX)  # any rank's message, on every rank
+        message = allreduce(comm, problem or "", "max")  # any rank's message, on every rank
         if message:
             values[:] = start  # keep the last good state as the next starting guess
             return message
