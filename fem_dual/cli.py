@@ -37,21 +37,26 @@ def _key_value(text: str, what: str) -> tuple:
     return key.strip(), value.strip()
 
 
+def _add_problem_arguments(p: argparse.ArgumentParser, slabs_help: str) -> None:
+    """The problem definition shared by `run` and `bench`: scene, horizon, parameters, state."""
+    p.add_argument("scene", metavar="SCENE", help=f"one of: {', '.join(SCENES)}")
+    p.add_argument("--T", help="final time (default: the scene's)")
+    p.add_argument("--slabs", default="1", help=slabs_help)
+    p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                   help="scene parameter (repeatable); matrices as a11,a12,... or a scalar")
+    p.add_argument("--x0", help="initial position a,b,...")
+    p.add_argument("--v0", help="initial velocity a,b,...")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="fem-dual", description="Particle dynamics under curl forces through a "
                      "dual variational principle, solved in space-time with FEniCSx.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
     r = sub.add_parser("run", help="solve one scene and compare it with its reference")
-    r.add_argument("scene", metavar="SCENE", help=f"one of: {', '.join(SCENES)}")
-    r.add_argument("--T", help="final time (default: the scene's)")
+    _add_problem_arguments(r, "number of equal time slabs (default 1)")
     r.add_argument("--cells", default="100", help="time cells per slab (default 100)")
     r.add_argument("--degree", default="2", help="polynomial degree of the dual fields (default 2)")
-    r.add_argument("--slabs", default="1", help="number of equal time slabs (default 1)")
-    r.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
-                   help="scene parameter (repeatable); matrices as a11,a12,... or a scalar")
-    r.add_argument("--x0", help="initial position a,b,...")
-    r.add_argument("--v0", help="initial velocity a,b,...")
     r.add_argument("--max-halvings", default="6", help="nonlinear scenes: a slab whose Newton "
                    "fails is retried halved, at most this many times (default 6)")
     r.add_argument("--out", help="write XDMF output into this directory")
@@ -59,15 +64,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--petsc-option", action="append", default=[], metavar="KEY=VALUE",
                    help="PETSc option under the solver prefix dual_<scene>_, e.g. ksp_type=cg")
     b = sub.add_parser("bench", help="error against run time: fem-dual beside RK45, DOP853, Radau")
-    b.add_argument("scene", metavar="SCENE", help=f"one of: {', '.join(SCENES)}")
-    b.add_argument("--T", help="final time (default: the scene's)")
-    b.add_argument("--slabs", default="1", help="slabs of every fem-dual run (default 1)")
+    _add_problem_arguments(b, "slabs of every fem-dual run (default 1)")
     b.add_argument("--cells", default="2,4,8,16,32", help="cells per slab to sweep")
     b.add_argument("--degrees", default="2,3,4", help="degrees to sweep")
     b.add_argument("--repeats", default="3", help="timed repeats per configuration (median)")
-    b.add_argument("--param", action="append", default=[], metavar="NAME=VALUE")
-    b.add_argument("--x0", help="initial position a,b,...")
-    b.add_argument("--v0", help="initial velocity a,b,...")
     b.add_argument("--out", default=".", help="directory for bench.csv and bench.png")
     b.add_argument("--json", action="store_true", help='print {"rows": [...]} on stdout')
     sub.add_parser("scenes", help="list the scenes, their parameters and defaults")
@@ -127,8 +127,6 @@ def _int_list(name: str, text: str) -> List[int]:
 
 
 def _bench(args, params, comm: MPI.Comm) -> int:
-    from pathlib import Path
-
     from fem_dual import bench as bm
     from fem_dual.output import check_output_dir
 

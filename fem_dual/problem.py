@@ -63,47 +63,20 @@ class SlabProblem:
         self.deta = ufl.as_vector([w[n + i].dx(0) for i in range(n)]) / self.dt
         self.extra = ufl.as_vector([w[2 * n + i] for i in range(extra)]) if extra else None
 
-        f = scene.forms
-        c = self.c
+        f, c = scene.forms, self.c
         M = c["M"]
         self.time = self.t0 + self.dt * ufl.SpatialCoordinate(msh)[0]
         qdeg = scene.quadrature_degree(degree)
-        self.pointwise: Optional[PointwiseDtP] = None
         self.force = lambda x: f.force(x, c)  # noqa: E731
         self.aux = lambda dx_, dv_: f.aux_potential(dx_, dv_, c)  # noqa: E731
-        if extra:  # lifted scene: its own augmented Lagrangian, DtP map with auxiliary primal
-            self.xhat, self.vhat, lifted = f.dtp_map(self.xi, self.eta, self.dxi, self.deta,
-                                                     self.xbar, self.vbar, c, self.extra)
-            L_d = f.lagrangian(self.xhat, self.vhat, lifted, self.xi, self.eta, self.dxi,
-                               self.deta, self.extra, self.xbar, self.vbar, c)
-        elif f.dtp == "explicit":
-            self.xhat, self.vhat = f.dtp_map(self.xi, self.eta, self.dxi, self.deta, self.xbar,
-                                             self.vbar, c)
-        else:
-            # Newton-linearised DtP map around the pointwise solution X of G(X) = 0 at the
-            # quadrature points: x^ = X - G_x(X)^-1 G(X; xi, eta, xi'). Equal to X where G = 0,
-            # with the exact derivative -G_x^-1 G_zeta, so the Jacobian of the action is the exact
-            # second variation of the reduced action.
-            cell = msh.ufl_cell()
-            Qx = fem.FunctionSpace(msh, ufl.VectorElement("Quadrature", cell, qdeg, dim=n,
-                                                          quad_scheme="default"))
-            Qt = fem.FunctionSpace(msh, ufl.TensorElement("Quadrature", cell, qdeg, shape=(n, n),
-                                                          quad_scheme="default"))
-            points = basix.make_quadrature(basix.CellType.interval, qdeg)[0]
-            self.pointwise = PointwiseDtP(Qx, points, self.position_equations, self.time, Qt)
-            X, Ginv = self.pointwise.X, self.pointwise.Ginv
-            self.xhat = X - ufl.dot(Ginv, self.position_equations(X))
-            self.vhat = f.velocity_map(self.xi, self.deta, self.vbar, c)
-        if not extra:
-            L_d = predual_lagrangian(self.xhat, self.vhat, self.xi, self.eta, self.dxi,
-                                     self.deta, M, self.force, self.aux, self.xbar, self.vbar)
-        self.L_d = L_d
+        self.pointwise: Optional[PointwiseDtP] = None
+        self.xhat, self.vhat, self.L_d = self._reduced_lagrangian(qdeg)
         self.hamiltonian = self.hamiltonian_of(self.xhat, self.vhat)
 
         dx = ufl.Measure("dx", domain=msh, metadata={"quadrature_degree": qdeg})
         ds = ufl.Measure("ds", domain=msh, subdomain_data=self.mesh.tags)
-        self.action = L_d * self.dt * dx + boundary_term(self.xi, self.eta, M, self.x0,
-                                                         self.v0) * ds(START)
+        initial = boundary_term(self.xi, self.eta, M, self.x0, self.v0)
+        self.action = self.L_d * self.dt * dx + initial * ds(START)
         self.residual = ufl.derivative(self.action, w, ufl.TestFunction(self.W))
         self.jacobian = ufl.derivative(self.residual, w, ufl.TrialFunction(self.W))
 
@@ -113,6 +86,36 @@ class SlabProblem:
             sub = self.W.sub(i)
             dofs = fem.locate_dofs_topological(sub, 0, self.mesh.end_vertices)
             self.bcs.append(fem.dirichletbc(PETSc.ScalarType(0.0), dofs, sub))
+
+    def _reduced_lagrangian(self, qdeg: int):
+        """(x^, v^, L_d): the scene's DtP map and the pre-dual Lagrangian evaluated on it."""
+        f, c, n = self.scene.forms, self.c, self.n
+        args = (self.xi, self.eta, self.dxi, self.deta)
+        if self.extra is not None:  # lifted scene: augmented Lagrangian, auxiliary primal
+            xhat, vhat, lifted = f.dtp_map(*args, self.xbar, self.vbar, c, self.extra)
+            L_d = f.lagrangian(xhat, vhat, lifted, *args, self.extra, self.xbar, self.vbar, c)
+            return xhat, vhat, L_d
+        if f.dtp == "explicit":
+            xhat, vhat = f.dtp_map(*args, self.xbar, self.vbar, c)
+        else:
+            # Newton-linearised DtP map around the pointwise solution X of G(X) = 0 at the
+            # quadrature points: x^ = X - G_x(X)^-1 G(X; xi, eta, xi'). Equal to X where G = 0,
+            # with the exact derivative -G_x^-1 G_zeta, so the Jacobian of the action is the exact
+            # second variation of the reduced action.
+            msh = self.mesh.msh
+            cell = msh.ufl_cell()
+            Qx = fem.FunctionSpace(msh, ufl.VectorElement("Quadrature", cell, qdeg, dim=n,
+                                                          quad_scheme="default"))
+            Qt = fem.FunctionSpace(msh, ufl.TensorElement("Quadrature", cell, qdeg, shape=(n, n),
+                                                          quad_scheme="default"))
+            points = basix.make_quadrature(basix.CellType.interval, qdeg)[0]
+            self.pointwise = PointwiseDtP(Qx, points, self.position_equations, self.time, Qt)
+            X, Ginv = self.pointwise.X, self.pointwise.Ginv
+            xhat = X - ufl.dot(Ginv, self.position_equations(X))
+            vhat = f.velocity_map(self.xi, self.deta, self.vbar, c)
+        L_d = predual_lagrangian(xhat, vhat, *args, c["M"], self.force, self.aux, self.xbar,
+                                 self.vbar)
+        return xhat, vhat, L_d
 
     def position_equations(self, x):
         """G(x; xi, eta, xi') = 0, the implicit position part of the DtP map."""
