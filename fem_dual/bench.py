@@ -64,8 +64,7 @@ def _ode_rows(scene: Scene, T: float, x0: np.ndarray, v0: np.ndarray, samples: i
     n = scene.n
     Minv = np.linalg.inv(scene.mass_matrix())
     if scene.linear:
-        K = scene.stiffness_matrix()
-        A = np.block([[np.zeros((n, n)), np.eye(n)], [-Minv @ K, np.zeros((n, n))]])
+        A = scene.first_order_matrix()
         rhs = lambda _t, z: A @ z  # noqa: E731
         jac = A
     else:

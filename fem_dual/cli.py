@@ -70,6 +70,12 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--repeats", default="3", help="timed repeats per configuration (median)")
     b.add_argument("--out", default=".", help="directory for bench.csv and bench.png")
     b.add_argument("--json", action="store_true", help='print {"rows": [...]} on stdout')
+    f = sub.add_parser("flutter", help="critical follower load: eigenvalues and dual simulations")
+    _add_problem_arguments(f, "slabs of each dual simulation (default 40)")
+    f.set_defaults(slabs="40", T="40", x0=None, v0=None)
+    f.add_argument("--cells", default="16", help="cells per slab (default 16)")
+    f.add_argument("--degree", default="5", help="degree of the dual fields (default 5)")
+    f.add_argument("--json", action="store_true", help="print {eigen, dual, eigen_s, dual_s}")
     sub.add_parser("scenes", help="list the scenes, their parameters and defaults")
     return parser
 
@@ -153,6 +159,27 @@ def _bench(args, params, comm: MPI.Comm) -> int:
     return 0
 
 
+def _flutter(args, params, comm: MPI.Comm) -> int:
+    from fem_dual.flutter import flutter
+
+    scene = SCENES.get(args.scene)
+    x0 = args.x0 if args.x0 is not None else (None if scene is None or scene.n != 2
+                                              else "0.1,-0.05")
+    v0 = args.v0 if args.v0 is not None else (None if scene is None or scene.n != 2
+                                              else "0.02,0.03")
+    base = RunConfig.create(args.scene, params, T=args.T, cells=args.cells, degree=args.degree,
+                            slabs=args.slabs, x0=x0, v0=v0)
+    found = flutter(base, comm)
+    if args.json:
+        print0(comm, json.dumps(found, allow_nan=False))
+    else:
+        gap = abs(found["dual"] - found["eigen"]) / found["eigen"]
+        print0(comm, f"critical load of {args.scene}: eigenvalues {found['eigen']:.6f} "
+                     f"({found['eigen_s']:.3f} s), dual simulations {found['dual']:.6f} "
+                     f"({found['dual_s']:.2f} s); relative gap {gap:.2e}")
+    return 0
+
+
 def main(argv: Optional[Sequence[str]] = None, comm: MPI.Comm = MPI.COMM_WORLD) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
@@ -163,6 +190,8 @@ def main(argv: Optional[Sequence[str]] = None, comm: MPI.Comm = MPI.COMM_WORLD) 
         params = dict(_key_value(p, "--param") for p in args.param)
         if args.command == "bench":
             return _bench(args, params, comm)
+        if args.command == "flutter":
+            return _flutter(args, params, comm)
         petsc = dict(_key_value(p, "--petsc-option") for p in args.petsc_option)
         config = RunConfig.create(args.scene, params, T=args.T, cells=args.cells,
                                   degree=args.degree, slabs=args.slabs, x0=args.x0, v0=args.v0,
@@ -173,7 +202,7 @@ def main(argv: Optional[Sequence[str]] = None, comm: MPI.Comm = MPI.COMM_WORLD) 
         return InputError.exit_status
     except SolveError as exc:
         print0(comm, f"fem-dual: solve failed: {exc}", file=sys.stderr)
-        if exc.partial is not None and args.json:
+        if exc.partial is not None and args.command == "run" and args.json:
             print0(comm, json.dumps(exc.partial.to_dict(), allow_nan=False))
         return SolveError.exit_status
     if args.json:

@@ -114,7 +114,7 @@ class SlabProblem:
             xhat = X - ufl.dot(Ginv, self.position_equations(X))
             vhat = f.velocity_map(self.xi, self.deta, self.vbar, c)
         L_d = predual_lagrangian(xhat, vhat, *args, c["M"], self.force, self.aux, self.xbar,
-                                 self.vbar)
+                                 self.vbar, c.get("D"))
         return xhat, vhat, L_d
 
     def position_equations(self, x):
@@ -131,7 +131,7 @@ class SlabProblem:
             return -ufl.dot(xhat, self.dxi) - ufl.dot(ufl.dot(self.c["M"], vhat), self.deta) \
                 - self.L_d
         return dual_hamiltonian(xhat, vhat, self.xi, self.eta, self.force, self.aux, self.xbar,
-                                self.vbar)
+                                self.vbar, self.c.get("D"))
 
     @property
     def num_dofs(self) -> int:

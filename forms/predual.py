@@ -18,8 +18,11 @@ Force = Callable[[ufl.core.expr.Expr], ufl.core.expr.Expr]
 AuxH = Callable[[ufl.core.expr.Expr, ufl.core.expr.Expr], ufl.core.expr.Expr]
 
 
-def predual_lagrangian(x, v, xi, eta, dxi, deta, M, F: Force, H: AuxH, xbar, vbar):
-    """L = -x.xi' - (M v).eta' - xi.v - eta.F(x) - H(x - xbar, v - vbar).
+def predual_lagrangian(x, v, xi, eta, dxi, deta, M, F: Force, H: AuxH, xbar, vbar, D=None):
+    """L = -x.xi' - (M v).eta' - xi.v - eta.F(x) + eta.(D v) - H(x - xbar, v - vbar).
+
+    The damping term eta.(D v) pairs eta with M v' + D v - F(x) = 0 (the remark closing section
+    3.3); D = None is the undamped system of the reference.
 
     Args:
         x, v: primal position and velocity (n-vectors, UFL).
@@ -30,13 +33,16 @@ def predual_lagrangian(x, v, xi, eta, dxi, deta, M, F: Force, H: AuxH, xbar, vba
         H: the auxiliary function of (x - xbar, v - vbar).
         xbar, vbar: the base state.
     """
-    return (-dot(x, dxi) - dot(dot(M, v), deta) - dot(xi, v) - dot(eta, F(x))
-            - H(x - xbar, v - vbar))
+    L = (-dot(x, dxi) - dot(dot(M, v), deta) - dot(xi, v) - dot(eta, F(x))
+         - H(x - xbar, v - vbar))
+    return L if D is None else L + dot(eta, dot(D, v))
 
 
-def dual_hamiltonian(x, v, xi, eta, F: Force, H: AuxH, xbar, vbar):
-    """H_d = xi.v^ + eta.F(x^) + H(x^ - xbar, v^ - vbar), conserved on each slab (eq. DualHamiltonian)."""
-    return dot(xi, v) + dot(eta, F(x)) + H(x - xbar, v - vbar)
+def dual_hamiltonian(x, v, xi, eta, F: Force, H: AuxH, xbar, vbar, D=None):
+    """H_d = xi.v^ + eta.F(x^) - eta.(D v^) + H(x^ - xbar, v^ - vbar), conserved on each slab
+    (eq. DualHamiltonian, with the damping force -D v^ beside F)."""
+    Hd = dot(xi, v) + dot(eta, F(x)) + H(x - xbar, v - vbar)
+    return Hd if D is None else Hd - dot(eta, dot(D, v))
 
 
 def boundary_term(xi, eta, M, x0, v0):

@@ -7,9 +7,10 @@ from fem_dual.errors import InputError
 from fem_dual.scenes.base import Scene
 from fem_dual.scenes.curl import (Curl2D, Curl2DLifted, Curl2DUFL, Curl3D, Curl3DUFL,
                                   ForceScene)
+from fem_dual.scenes.linear import LinearScene
 from fem_dual.scenes.ziegler import Ziegler
 
-__all__ = ["SCENES", "get_scene", "register", "Scene", "ForceScene"]
+__all__ = ["SCENES", "get_scene", "register", "Scene", "ForceScene", "LinearScene"]
 
 SCENES: Dict[str, Type[Scene]] = {}
 
