@@ -121,8 +121,8 @@ def _list_scenes() -> str:
     for name, cls in SCENES.items():
         defaults = cls()
         params = ", ".join(f"{k}={v}" for k, v in defaults.parameters().items())
-        lines.append(f"{name}: {cls.summary}\n  n={cls.n}  T={cls.default_T:g}  "
-                     f"x0={cls.default_x0}  v0={cls.default_v0}\n  parameters: {params}")
+        lines.append(f"{name}: {cls.summary}\n  n={defaults.n}  T={cls.default_T:g}  "
+                     f"x0={defaults.default_x0}  v0={defaults.default_v0}\n  parameters: {params}")
     return "\n".join(lines)
 
 

@@ -42,6 +42,10 @@ BAD_INPUTS = [
     (["run", "curl2d", "--max-halvings", "-2"], "max-halvings"),
     (["run", "curl3d", "--param", "alpha=0"], "alpha"),
     (["run", "curl2d", "--x0", "1"], "x0"),
+    (["run", "column", "--param", "links=1"], "links"),
+    (["run", "column", "--param", "links=2.5"], "links"),
+    (["run", "column", "--param", "links=3", "--param", "m=1,2"], "m="),
+    (["run", "column", "--param", "m=0"], "m="),
 ]
 
 

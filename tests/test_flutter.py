@@ -60,3 +60,37 @@ def test_flutter_cli_json(capsys):
 def test_damping_matrix_of_the_ziegler_joints():
     z = get_scene("ziegler").from_params({"d1": "0.3", "d2": "0.2"})
     assert np.array_equal(z.damping_matrix(), [[0.5, -0.2], [-0.2, 0.2]])
+
+
+def test_column_with_two_links_is_ziegler():
+    cfg = dict(T=10.0, slabs=5, cells=20, degree=3)
+    z = run(RunConfig.create("ziegler", {"d1": "0.05", "d2": "0.02", "P": "1.5"}, **cfg))
+    c = run(RunConfig.create("column", {"links": "2", "m": "2,1", "d": "0.05,0.02", "P": "1.5"},
+                             **cfg))
+    assert np.array_equal(z.x, c.x) and np.array_equal(z.v, c.v)
+
+
+@pytest.mark.mpi
+def test_damped_column_against_the_matrix_exponential():
+    params = {"links": "3", "m": "1,2,1", "c": "3,2,1", "d": "0.05", "P": "0.8"}
+    errors = [run(RunConfig.create("column", params, T=8.0, slabs=4, cells=c, degree=3,
+                                   x0="0.1,0,-0.05")).error["x_max"] for c in (10, 20, 40, 80)]
+    assert errors[-1] < 1e-5
+    assert np.all(observed_rates(errors) > 2.85), errors
+
+
+def test_column_approaches_beck_as_links_grow():
+    from fem_dual.flutter import critical_load, eigen_rate
+    loads = []
+    for links in (10, 20, 40):
+        scene = get_scene("column").from_params(
+            {"links": links, "l": 1 / links, "c": links, "m": 1 / links})
+        loads.append(critical_load(eigen_rate(scene), 1e-9, first=1.0))
+    assert loads[0] < loads[1] < loads[2] < 20.05  # Beck: P_cr = 20.05 EI / L^2
+    assert 20.05 - loads[2] < 0.55 * (20.05 - loads[1])  # the gap closes like 1/N
+
+
+def test_flutter_of_a_damped_column_within_one_percent():
+    params = {"links": "2", "m": "2,1", "d": "0.02"}
+    found = flutter(RunConfig.create("column", params, **SETTINGS), MPI.COMM_WORLD)
+    assert found["dual"] == pytest.approx(found["eigen"], rel=1e-2)

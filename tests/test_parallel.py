@@ -10,6 +10,7 @@ from mpi4py import MPI
 from fem_dual import SCENES, RunConfig, run
 
 SCENE_ARGS = {"ziegler": dict(T=6.0, cells=20, degree=3, slabs=3),
+              "column": dict(T=6.0, cells=20, degree=3, slabs=3),
               "curl3d": dict(T=2.0, cells=20, degree=3, slabs=2),
               "curl3d-ufl": dict(T=2.0, cells=20, degree=3, slabs=2),
               "curl2d": dict(T=2.0, cells=20, degree=3, slabs=4),

@@ -7,6 +7,7 @@ from fem_dual.errors import InputError
 from fem_dual.scenes.base import Scene
 from fem_dual.scenes.curl import (Curl2D, Curl2DLifted, Curl2DUFL, Curl3D, Curl3DUFL,
                                   ForceScene)
+from fem_dual.scenes.column import Column
 from fem_dual.scenes.linear import LinearScene
 from fem_dual.scenes.ziegler import Ziegler
 
@@ -21,7 +22,7 @@ def register(cls: Type[Scene]) -> Type[Scene]:
     return cls
 
 
-for _cls in (Ziegler, Curl3D, Curl2D, Curl2DLifted, Curl3DUFL, Curl2DUFL):
+for _cls in (Ziegler, Column, Curl3D, Curl2D, Curl2DLifted, Curl3DUFL, Curl2DUFL):
     register(_cls)
 
 

@@ -15,8 +15,8 @@ import numpy as np
 
 from fem_dual.errors import InputError
 
-__all__ = ["Scene", "matrix_field", "parse_number", "parse_vector", "require_spd",
-           "require_positive"]
+__all__ = ["Scene", "matrix_field", "per_link_field", "parse_number", "parse_vector",
+           "require_spd", "require_positive"]
 
 
 def matrix_field(doc: str):
@@ -64,6 +64,25 @@ def _parse_matrix(name: str, text: "str | float | np.ndarray | tuple", n: int) -
     return np.array(values).reshape(n, n)
 
 
+def per_link_field(default: float, doc: str):
+    """A dataclass field holding one value, or one value per link ('a' or 'a1,a2,...')."""
+    return dataclasses.field(default=default, metadata={"kind": "per_link", "doc": doc})
+
+
+def _parse_per_link(name: str, text, n: int) -> list:
+    items = text.split(",") if isinstance(text, str) else list(np.ravel([text]))
+    values = [parse_number(name, item) for item in items]
+    if len(values) not in (1, n):
+        raise InputError(f"{name}={_show(text)} has {len(values)} entries, expected 1 or {n}")
+    return values * n if len(values) == 1 else values
+
+
+def _whole(value: float) -> int:
+    if value != int(value):
+        raise InputError(f"links={value!r} is not a whole number")
+    return int(value)
+
+
 def require_positive(scene: "Scene", *names: str) -> None:
     for name in names:
         value = getattr(scene, name)
@@ -109,15 +128,21 @@ class Scene:
         """
         params = dict(params or {})
         known = {f.name: f for f in dataclasses.fields(cls)}
-        values: Dict[str, object] = {}
-        for key, text in params.items():
+        for key in params:
             if key not in known:
                 raise InputError(f"unknown parameter {key!r} for scene {cls.name} "
                                  f"(known: {', '.join(known)})")
-            if known[key].metadata.get("kind") == "matrix":
-                values[key] = tuple(map(tuple, _parse_matrix(key, text, cls.n)))
-            else:
-                values[key] = parse_number(key, text)
+        kind = {key: known[key].metadata.get("kind", "float") for key in params}
+        values: Dict[str, object] = {key: parse_number(key, text) for key, text in params.items()
+                                     if kind[key] == "float"}
+        if "links" in values:  # a size: everything sized by n depends on it
+            values["links"] = _whole(values["links"])
+        n = cls(**values).n  # scalar fields first: n may depend on them (a column's links)
+        for key, text in params.items():
+            if kind[key] == "matrix":
+                values[key] = tuple(map(tuple, _parse_matrix(key, text, n)))
+            elif kind[key] == "per_link":
+                values[key] = tuple(_parse_per_link(key, text, n))
         scene = cls(**values)
         scene.validate()
         return scene
@@ -152,5 +177,7 @@ class Scene:
         out: Dict[str, object] = {}
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
-            out[f.name] = [list(row) for row in value] if isinstance(value, tuple) else value
+            if isinstance(value, tuple):
+                value = [list(v) if isinstance(v, tuple) else v for v in value]
+            out[f.name] = value
         return out

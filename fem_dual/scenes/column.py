@@ -1,0 +1,66 @@
+"""The N-link follower-load column: M, K, D assembled in code for any number of links."""
+from __future__ import annotations
+
+import dataclasses
+from typing import ClassVar, Tuple
+
+import numpy as np
+
+import forms.column as column_forms
+from fem_dual.errors import InputError
+from fem_dual.scenes.base import per_link_field, require_positive
+from fem_dual.scenes.linear import LinearScene
+
+__all__ = ["Column"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Column(LinearScene):
+    """N = `links` rigid links with joint masses m, springs c, dampers d (one value, or one per
+    link), length l, tip follower load P. links=2, m=2,1 reproduces `ziegler`."""
+
+    name: ClassVar[str] = "column"
+    forms: ClassVar = column_forms
+    default_T: ClassVar[float] = 20.0
+    summary: ClassVar[str] = "N-link follower-load column (Ziegler for N = 2, Beck for large N)"
+
+    links: int = 2
+    m: tuple = per_link_field(1.0, "joint and tip masses")
+    c: tuple = per_link_field(1.0, "rotational springs (base first)")
+    d: tuple = per_link_field(0.0, "joint dampers (base first)")
+    l: float = 1.0
+    P: float = 1.0
+
+    @property
+    def n(self) -> int:  # type: ignore[override]
+        return int(self.links)
+
+    @property
+    def default_x0(self) -> Tuple[float, ...]:  # type: ignore[override]
+        return (0.1,) + (0.0,) * (self.n - 1)
+
+    @property
+    def default_v0(self) -> Tuple[float, ...]:  # type: ignore[override]
+        return (0.0,) * self.n
+
+    def _per_link(self, name: str) -> np.ndarray:
+        value = getattr(self, name)
+        return np.full(self.n, float(value)) if np.ndim(value) == 0 else np.asarray(value, float)
+
+    def validate(self) -> None:
+        if self.links < 2 or self.links > 100_000:
+            raise InputError(f"links={self.links!r} must be between 2 and 100000")
+        require_positive(self, "l")
+        if not (self._per_link("m") > 0).all():
+            raise InputError(f"m={self.m!r} must be positive")
+        super().validate()
+
+    def mass_matrix(self) -> np.ndarray:
+        return column_forms.mass_matrix(self._per_link("m"), self.l)
+
+    def stiffness_matrix(self) -> np.ndarray:
+        return (column_forms.joint_matrix(self._per_link("c"))
+                - column_forms.follower_matrix(self.n, self.l, self.P))
+
+    def damping_matrix(self) -> np.ndarray:
+        return column_forms.joint_matrix(self._per_link("d"))
