@@ -74,7 +74,7 @@ def test_column_with_two_links_is_ziegler():
 def test_damped_column_against_the_matrix_exponential():
     params = {"links": "3", "m": "1,2,1", "c": "3,2,1", "d": "0.05", "P": "0.8"}
     errors = [run(RunConfig.create("column", params, T=8.0, slabs=4, cells=c, degree=3,
-                                   x0="0.1,0,-0.05")).error["x_max"] for c in (10, 20, 40, 80)]
+                                   x0="0.1,0,-0.05")).error["x_max"] for c in (20, 40, 80, 160)]
     assert errors[-1] < 1e-5
     assert np.all(observed_rates(errors) > 2.85), errors
 
