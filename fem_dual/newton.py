@@ -7,16 +7,14 @@ evaluation first solves the pointwise DtP equations at the quadrature points.
 """
 from __future__ import annotations
 
-import time
 from typing import Dict, List, Mapping, Optional
 
-from dolfinx import fem
 from dolfinx.fem import petsc as fem_petsc
 from petsc4py import PETSc
 
 from fem_dual.errors import SolveError
 from fem_dual.problem import SlabProblem
-from fem_dual.solvers import petsc_options
+from fem_dual.solvers import CompiledSlab, petsc_options
 
 __all__ = ["NEWTON_DEFAULTS", "NewtonSlabSolver"]
 
@@ -39,18 +37,12 @@ NEWTON_DEFAULTS: Dict[str, str] = {
 }
 
 
-class NewtonSlabSolver:
+class NewtonSlabSolver(CompiledSlab):
     """SNES on the residual of one slab; per-slab iteration counts and residual histories."""
 
     def __init__(self, problem: SlabProblem, prefix: str,
                  overrides: Optional[Mapping[str, str]] = None):
-        self.problem = problem
-        tic = time.perf_counter()
-        self.L = fem.form(problem.residual)
-        self.a = fem.form(problem.jacobian)
-        self.compile_s = time.perf_counter() - tic
-        self.b = fem_petsc.create_vector(self.L)
-        self.A = fem_petsc.create_matrix(self.a)
+        super().__init__(problem)
         self.x = problem.w.vector.copy()
         self.snes = PETSc.SNES().create(problem.comm)
         self.snes.setFunction(self._residual, self.b)

@@ -18,7 +18,8 @@ from petsc4py import PETSc
 from fem_dual.errors import SolveError
 from fem_dual.problem import SlabProblem
 
-__all__ = ["LINEAR_DEFAULTS", "solver_prefix", "petsc_options", "LinearSlabSolver"]
+__all__ = ["LINEAR_DEFAULTS", "solver_prefix", "petsc_options", "CompiledSlab",
+           "LinearSlabSolver"]
 
 LINEAR_DEFAULTS: Dict[str, str] = {
     "ksp_type": "preonly",
@@ -50,7 +51,21 @@ def petsc_options(prefix: str, defaults: Mapping[str, str],
             opts.delValue(full)
 
 
-class LinearSlabSolver:
+class CompiledSlab:
+    """The compiled residual and Jacobian of a slab problem, with the matrix and vector they fill;
+    the part every slab solver shares."""
+
+    def __init__(self, problem: SlabProblem):
+        self.problem = problem
+        tic = time.perf_counter()
+        self.a = fem.form(problem.jacobian)
+        self.L = fem.form(problem.residual)
+        self.compile_s = time.perf_counter() - tic
+        self.A = fem_petsc.create_matrix(self.a)
+        self.b = fem_petsc.create_vector(self.L)
+
+
+class LinearSlabSolver(CompiledSlab):
     """One KSP solve per slab of the quadratic dual action: J w = -R(0).
 
     The Jacobian does not depend on the initial or base state; it is assembled and factored once
@@ -59,13 +74,7 @@ class LinearSlabSolver:
 
     def __init__(self, problem: SlabProblem, prefix: str,
                  overrides: Optional[Mapping[str, str]] = None):
-        self.problem = problem
-        t = time.perf_counter()
-        self.a = fem.form(problem.jacobian)
-        self.L = fem.form(problem.residual)
-        self.compile_s = time.perf_counter() - t
-        self.A = fem_petsc.create_matrix(self.a)
-        self.b = fem_petsc.create_vector(self.L)
+        super().__init__(problem)
         self.ksp = PETSc.KSP().create(problem.comm)
         self.ksp.setOperators(self.A)
         self.ksp.setOptionsPrefix(prefix)
