@@ -202,11 +202,12 @@ def main(argv: Optional[Sequence[str]] = None, comm: MPI.Comm = MPI.COMM_WORLD) 
         return InputError.exit_status
     except SolveError as exc:
         print0(comm, f"fem-dual: solve failed: {exc}", file=sys.stderr)
-        if exc.partial is not None and args.command == "run" and args.json:
-            print0(comm, json.dumps(exc.partial.to_dict(), allow_nan=False))
+        if exc.partial is not None and args.command == "run" and args.json and comm.rank == 0:
+            exc.partial.write_json(sys.stdout)
         return SolveError.exit_status
     if args.json:
-        print0(comm, json.dumps(result.to_dict(), allow_nan=False))
+        if comm.rank == 0:
+            result.write_json(sys.stdout)
     else:
         print0(comm, _summary(result))
     return 0

@@ -7,6 +7,7 @@ RunResult.
 """
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional
@@ -59,16 +60,34 @@ class RunResult:
             return {"t": None, "x": None, "v": None}
         return {"t": float(self.t[-1]), "x": self.x[-1].tolist(), "v": self.v[-1].tolist()}
 
-    def to_dict(self) -> Dict[str, Any]:
-        return {
+    def write_json(self, stream, chunk: int = 4096) -> None:
+        """Write `to_dict()` as one JSON object, streaming the vertex arrays in chunks of rows so
+        that long runs never hold their JSON text in memory."""
+        head = self.to_dict(arrays=False)
+        stream.write(json.dumps(head, allow_nan=False)[:-1])
+        for name in ("t", "x", "v"):
+            values = getattr(self, name)
+            stream.write(f', "{name}": [')
+            for start in range(0, len(values), chunk):
+                if start:
+                    stream.write(", ")
+                stream.write(json.dumps(values[start:start + chunk].tolist(),
+                                        allow_nan=False)[1:-1])
+            stream.write("]")
+        stream.write("}\n")
+
+    def to_dict(self, arrays: bool = True) -> Dict[str, Any]:
+        out = {
             "scene": self.scene, "parameters": self.parameters, "T": self.T, "cells": self.cells,
             "degree": self.degree, "slabs": self.slabs, "x0": self.x0, "v0": self.v0,
             "status": self.status, "message": self.message,
             "dofs_per_slab": self.dofs_per_slab, "slab_lengths": self.slab_lengths,
-            "t": self.t.tolist(), "x": self.x.tolist(), "v": self.v.tolist(),
             "final": self.final, "error": self.error, "hamiltonian": self.hamiltonian,
             "solver": self.solver, "timings": self.timings, "output_files": self.output_files,
         }
+        if arrays:
+            out.update(t=self.t.tolist(), x=self.x.tolist(), v=self.v.tolist())
+        return out
 
 
 class _Accumulator:
