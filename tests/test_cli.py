@@ -46,6 +46,9 @@ BAD_INPUTS = [
     (["run", "column", "--param", "links=2.5"], "links"),
     (["run", "column", "--param", "links=3", "--param", "m=1,2"], "m="),
     (["run", "column", "--param", "m=0"], "m="),
+    (["run", "linear", "--param", "M=1,2,2,1"], "M="),
+    (["run", "linear", "--param", "dofs=0"], "dofs"),
+    (["run", "linear", "--param", "dofs=3", "--param", "K=1,2"], "K="),
 ]
 
 

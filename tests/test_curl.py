@@ -156,3 +156,26 @@ def test_slab_halving_recovers_a_failing_slab():
     assert r.status == "ok" and r.error["x_max"] < 1e-5
     assert min(r.slab_lengths) < 1.0 and sum(r.slab_lengths) == pytest.approx(3.0)
     assert r.solver["halved_slabs"]
+
+
+@pytest.mark.serial
+@pytest.mark.parametrize("scene, slabs, sym, num", [("curl2d", 4, 1, None), ("ziegler", 4, 1, 1)])
+def test_factorisations_counted_by_petsc(scene, slabs, sym, num, tmp_path):
+    """Symbolic LU once per run (nonlinear: numeric per Newton step; linear: numeric once)."""
+    import os
+    import subprocess
+    import sys
+
+    log = tmp_path / "log.txt"
+    env = {**os.environ, "PETSC_OPTIONS": f"-log_view :{log}"}
+    subprocess.run([sys.executable, "-m", "fem_dual.cli", "run", scene, "--T", "2", "--slabs",
+                    str(slabs), "--cells", "20", "--degree", "3"], check=True, env=env,
+                   capture_output=True, stdin=subprocess.DEVNULL)
+    counts = {line.split()[0]: int(line.split()[1]) for line in log.read_text().splitlines()
+              if line.split()[:1] and line.split()[0] in ("MatLUFactorSym", "MatLUFactorNum",
+                                                           "KSPSolve")}
+    assert counts["MatLUFactorSym"] == sym
+    if num is not None:
+        assert counts["MatLUFactorNum"] == num and counts["KSPSolve"] == slabs
+    else:
+        assert counts["MatLUFactorNum"] == counts["KSPSolve"] > slabs

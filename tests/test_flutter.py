@@ -94,3 +94,25 @@ def test_flutter_of_a_damped_column_within_one_percent():
     params = {"links": "2", "m": "2,1", "d": "0.02"}
     found = flutter(RunConfig.create("column", params, **SETTINGS), MPI.COMM_WORLD)
     assert found["dual"] == pytest.approx(found["eigen"], rel=1e-2)
+
+
+def test_general_linear_scene_is_ziegler_with_its_matrices():
+    cfg = dict(T=10.0, slabs=5, cells=20, degree=3)
+    z = run(RunConfig.create("ziegler", {"P": "1.5", "d1": "0.1", "d2": "0.05"}, **cfg))
+    scene = get_scene("ziegler").from_params({"P": "1.5", "d1": "0.1", "d2": "0.05"})
+    flat = {k: ",".join(map(repr, m.ravel())) for k, m in
+            (("M", scene.mass_matrix()), ("K", scene.stiffness_matrix()),
+             ("D", scene.damping_matrix()))}
+    g = run(RunConfig.create("linear", flat, **cfg))
+    assert np.array_equal(z.x, g.x)
+
+
+@pytest.mark.mpi
+def test_general_damped_linear_system_against_the_matrix_exponential():
+    params = {"dofs": "3", "M": "2,0.5,0,0.5,1,0,0,0,1", "K": "2,-1,0.5,-1,2,-1,0,-1,2",
+              "D": "0.1,0,0.02,0,0.05,0,0.03,0,0.2"}
+    errors = [run(RunConfig.create("linear", params, T=10.0, slabs=5, cells=c, degree=3,
+                                   x0="0.1,0,-0.1", v0="0,0.1,0")).error["x_max"]
+              for c in (20, 40, 80, 160)]
+    assert errors[-1] < 1e-6
+    assert np.all(observed_rates(errors) > 2.85), errors

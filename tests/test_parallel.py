@@ -11,6 +11,7 @@ from fem_dual import SCENES, RunConfig, run
 
 SCENE_ARGS = {"ziegler": dict(T=6.0, cells=20, degree=3, slabs=3),
               "column": dict(T=6.0, cells=20, degree=3, slabs=3),
+              "linear": dict(T=6.0, cells=20, degree=3, slabs=3),
               "curl3d": dict(T=2.0, cells=20, degree=3, slabs=2),
               "curl3d-ufl": dict(T=2.0, cells=20, degree=3, slabs=2),
               "curl2d": dict(T=2.0, cells=20, degree=3, slabs=4),

@@ -8,7 +8,7 @@ from fem_dual.scenes.base import Scene
 from fem_dual.scenes.curl import (Curl2D, Curl2DLifted, Curl2DUFL, Curl3D, Curl3DUFL,
                                   ForceScene)
 from fem_dual.scenes.column import Column
-from fem_dual.scenes.linear import LinearScene
+from fem_dual.scenes.linear import GeneralLinear, LinearScene
 from fem_dual.scenes.ziegler import Ziegler
 
 __all__ = ["SCENES", "get_scene", "register", "Scene", "ForceScene", "LinearScene"]
@@ -22,7 +22,7 @@ def register(cls: Type[Scene]) -> Type[Scene]:
     return cls
 
 
-for _cls in (Ziegler, Column, Curl3D, Curl2D, Curl2DLifted, Curl3DUFL, Curl2DUFL):
+for _cls in (Ziegler, Column, GeneralLinear, Curl3D, Curl2D, Curl2DLifted, Curl3DUFL, Curl2DUFL):
     register(_cls)
 
 

@@ -77,9 +77,9 @@ def _parse_per_link(name: str, text, n: int) -> list:
     return values * n if len(values) == 1 else values
 
 
-def _whole(value: float) -> int:
+def _whole(name: str, value: float) -> int:
     if value != int(value):
-        raise InputError(f"links={value!r} is not a whole number")
+        raise InputError(f"{name}={value!r} is not a whole number")
     return int(value)
 
 
@@ -135,8 +135,9 @@ class Scene:
         kind = {key: known[key].metadata.get("kind", "float") for key in params}
         values: Dict[str, object] = {key: parse_number(key, text) for key, text in params.items()
                                      if kind[key] == "float"}
-        if "links" in values:  # a size: everything sized by n depends on it
-            values["links"] = _whole(values["links"])
+        for size in ("links", "dofs"):  # sizes: everything sized by n depends on them
+            if size in values:
+                values[size] = _whole(size, values[size])
         n = cls(**values).n  # scalar fields first: n may depend on them (a column's links)
         for key, text in params.items():
             if kind[key] == "matrix":

@@ -11,9 +11,10 @@ import numpy as np
 
 import forms.linear as linear_forms
 from fem_dual.reference import LinearFlow, first_order_matrix
+from fem_dual.errors import InputError
 from fem_dual.scenes.base import Scene, matrix_field, require_spd
 
-__all__ = ["LinearScene"]
+__all__ = ["LinearScene", "GeneralLinear"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,3 +56,43 @@ class LinearScene(Scene):
 
     def reference(self, x0, v0) -> LinearFlow:
         return LinearFlow(self.first_order_matrix(), x0, v0)
+
+
+@dataclasses.dataclass(frozen=True)
+class GeneralLinear(LinearScene):
+    """Any M q'' + D q' + K q = 0: `dofs` = n, M SPD, K and D any n x n (row-major lists)."""
+
+    name: ClassVar[str] = "linear"
+    default_T: ClassVar[float] = 10.0
+    summary: ClassVar[str] = "any M q'' + D q' + K q = 0 (M SPD; K, D any), remark of section 3.3"
+
+    dofs: int = 2
+    M: Optional[tuple] = matrix_field("mass matrix (SPD); default identity")
+    K: Optional[tuple] = matrix_field("stiffness (any, non-symmetric allowed); default identity")
+    D: Optional[tuple] = matrix_field("damping (any); default zero")
+
+    @property
+    def n(self) -> int:  # type: ignore[override]
+        return int(self.dofs)
+
+    @property
+    def default_x0(self):  # type: ignore[override]
+        return (0.1,) + (0.0,) * (self.n - 1)
+
+    @property
+    def default_v0(self):  # type: ignore[override]
+        return (0.0,) * self.n
+
+    def validate(self) -> None:
+        if not 1 <= self.dofs <= 1000:
+            raise InputError(f"dofs={self.dofs!r} must be between 1 and 1000")
+        super().validate()
+
+    def mass_matrix(self) -> np.ndarray:
+        return self.matrix("M", np.eye(self.n))
+
+    def stiffness_matrix(self) -> np.ndarray:
+        return self.matrix("K", np.eye(self.n))
+
+    def damping_matrix(self) -> np.ndarray:
+        return self.matrix("D", np.zeros((self.n, self.n)))
