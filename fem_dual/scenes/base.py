@@ -6,6 +6,7 @@ command line as `NAME=a11,a12,...` (row-major) or `NAME=s` for s times the ident
 """
 from __future__ import annotations
 
+import abc
 import dataclasses
 import math
 from types import ModuleType
@@ -100,7 +101,7 @@ def require_spd(name: str, matrix: np.ndarray) -> None:
 
 
 @dataclasses.dataclass(frozen=True)
-class Scene:
+class Scene(abc.ABC):
     """Base of all scenes. Subclasses are frozen dataclasses of their parameters."""
 
     name: ClassVar[str]
@@ -157,17 +158,18 @@ class Scene:
     def validate(self) -> None:
         """Raise InputError for parameters the scene cannot use."""
 
+    @abc.abstractmethod
     def mass_matrix(self) -> np.ndarray:
-        raise NotImplementedError
+        """M, symmetric positive definite."""
 
+    @abc.abstractmethod
     def constants(self) -> Dict[str, np.ndarray]:
         """Values of the fem.Constants its forms module uses, by name."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def reference(self, x0: np.ndarray, v0: np.ndarray):
         """The independent reference flow: called with increasing chunks of times t, it returns
         (x, v) at those times (see fem_dual.reference)."""
-        raise NotImplementedError
 
     def quadrature_degree(self, degree: int) -> int:
         """Quadrature degree of the action for dual fields of polynomial degree `degree`."""

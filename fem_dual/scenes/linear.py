@@ -4,6 +4,7 @@ remark): the base of every linear scene. A subclass gives M, K and D from its pa
 part of the dual Euler-Lagrange system the identity)."""
 from __future__ import annotations
 
+import abc
 import dataclasses
 from typing import ClassVar, Dict, Optional
 
@@ -27,8 +28,9 @@ class LinearScene(Scene):
     A: Optional[tuple] = matrix_field("H's position matrix (SPD); default identity")
     B: Optional[tuple] = matrix_field("H's velocity matrix (SPD); default M^2")
 
+    @abc.abstractmethod
     def stiffness_matrix(self) -> np.ndarray:
-        raise NotImplementedError
+        """K, any n x n (non-symmetric for a curl force)."""
 
     def damping_matrix(self) -> np.ndarray:
         return np.zeros((self.n, self.n))
