@@ -7,13 +7,13 @@ one compiled form (and, for linear scenes with equal slabs, one factored matrix)
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import List, Tuple
+from typing import Tuple
 
 import numpy as np
 from dolfinx import mesh
 from mpi4py import MPI
 
-__all__ = ["START", "END", "SlabMesh", "SlabSchedule", "slab_mesh", "partition"]
+__all__ = ["START", "END", "SlabMesh", "SlabSchedule", "slab_mesh"]
 
 START = 1  # tag of the vertex s = 0, where the initial conditions enter the action
 END = 2  # tag of the vertex s = 1, where xi = eta = 0 (Dirichlet)
@@ -49,16 +49,6 @@ def slab_mesh(comm: MPI.Comm, cells: int) -> SlabMesh:
     order = np.argsort(entities)
     tags = mesh.meshtags(msh, 0, entities[order], values[order])
     return SlabMesh(msh, tags, start, end, cells)
-
-
-def partition(T: float, slabs: int) -> List[Tuple[float, float]]:
-    """Split [0, T] into `slabs` equal slabs; returns (t0, dt) for each.
-
-    The start times are computed as k * T / slabs (not by accumulation), so they carry no
-    drift over thousands of slabs.
-    """
-    dt = T / slabs
-    return [(k * T / slabs, dt) for k in range(slabs)]
 
 
 class SlabSchedule:
