@@ -39,10 +39,10 @@ demo: install
 	$(VPY) demos/demo_ziegler.py
 
 test-serial: install
-	$(VPY) -m pytest -q tests
+	$(VPY) -m pytest -q --color=no tests
 
 test-mpi: install
-	mpirun -n $(NP) $(VPY) -m pytest -q -m mpi tests
+	mpirun -n $(NP) $(VPY) -m pytest -q --color=no -m mpi tests
 
 test: test-serial test-mpi
 
