@@ -14,7 +14,7 @@ from petsc4py import PETSc
 
 from fem_dual.errors import SolveError
 from fem_dual.problem import SlabProblem
-from fem_dual.solvers import CompiledSlab, petsc_options
+from fem_dual.solvers import CompiledSlab, direct_solver, petsc_options
 
 __all__ = ["NEWTON_DEFAULTS", "NewtonSlabSolver"]
 
@@ -33,7 +33,6 @@ NEWTON_DEFAULTS: Dict[str, str] = {
     "snes_max_it": "30",
     "ksp_type": "preonly",
     "pc_type": "lu",
-    "pc_factor_mat_solver_type": "mumps",
 }
 
 
@@ -48,7 +47,8 @@ class NewtonSlabSolver(CompiledSlab):
         self.snes.setFunction(self._residual, self.b)
         self.snes.setJacobian(self._jacobian, self.A)
         self.snes.setOptionsPrefix(prefix)
-        defaults = {**NEWTON_DEFAULTS, **problem.scene.solver_defaults}
+        defaults = {**NEWTON_DEFAULTS, "pc_factor_mat_solver_type": direct_solver(problem.comm),
+                    **problem.scene.solver_defaults}
         with petsc_options(prefix, defaults, overrides):
             self.snes.setFromOptions()
         self.snes.setConvergenceHistory(length=1000, reset=True)
@@ -56,6 +56,10 @@ class NewtonSlabSolver(CompiledSlab):
         self.residual_norms: List[float] = []
         self.histories: List[List[float]] = []
         self._error: Optional[str] = None
+
+    def reset(self) -> None:
+        """Forget the counts of earlier runs."""
+        self.iterations, self.residual_norms, self.histories = [], [], []
 
     def _update(self, x: PETSc.Vec) -> None:
         x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
@@ -98,7 +102,8 @@ class NewtonSlabSolver(CompiledSlab):
         if reason < 0:
             raise SolveError(f"Newton did not converge ({_REASONS.get(reason, reason)}, residual "
                              f"{history[-1] if history else float('nan'):.3g} after "
-                             f"{self.snes.getIterationNumber()} iterations); try more slabs")
+                             f"{self.snes.getIterationNumber()} iterations); use smaller slabs "
+                             "(more --slabs)")
         self._update(self.x)
         self.iterations.append(self.snes.getIterationNumber())
         self.residual_norms.append(history[-1] if history else 0.0)
