@@ -15,6 +15,7 @@ from fem_dual.scenes.base import parse_number, parse_vector
 __all__ = ["RunConfig", "MAX_VERTICES", "MAX_DEGREE"]
 
 MAX_VERTICES = 20_000_000  # over the whole run: the vertex arrays of the JSON must fit in memory
+SUPERPOSE = ("auto", "yes", "no")
 MAX_DEGREE = 10  # equispaced Lagrange bases beyond this are too ill-conditioned to be useful
 
 Number = Union[int, float, str]
@@ -47,6 +48,7 @@ class RunConfig:
     out: Optional[Path] = None
     petsc: Dict[str, str] = field(default_factory=dict)
     max_halvings: int = 6
+    superpose: str = "auto"  # linear scenes: slabs by superposition (auto: when slabs > 2n)
 
     @classmethod
     def create(cls, scene: Union[str, Scene], params: Optional[Mapping[str, object]] = None, *,
@@ -55,7 +57,7 @@ class RunConfig:
                v0: Optional[Union[str, Sequence[float]]] = None,
                out: Optional[Union[str, Path]] = None,
                petsc: Optional[Mapping[str, str]] = None,
-               max_halvings: Number = 6) -> "RunConfig":
+               max_halvings: Number = 6, superpose: str = "auto") -> "RunConfig":
         """Validate every input; raises InputError naming the first bad value."""
         if isinstance(scene, str):
             scene = get_scene(scene).from_params(params)
@@ -84,5 +86,9 @@ class RunConfig:
         halvings = _whole_number("max-halvings", max_halvings, minimum=0)
         if halvings > 30:
             raise InputError(f"max-halvings={max_halvings!r} is too large (at most 30)")
+        if superpose not in SUPERPOSE:
+            raise InputError(f"superpose={superpose!r} is not one of {', '.join(SUPERPOSE)}")
+        if superpose == "yes" and not scene.linear:
+            raise InputError(f"superpose=yes needs a linear scene ({scene.name} is nonlinear)")
         return cls(scene, T_value, cells_, degree_, slabs_, x0_, v0_,
-                   None if out is None else Path(out), petsc_, halvings)
+                   None if out is None else Path(out), petsc_, halvings, superpose)

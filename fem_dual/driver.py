@@ -24,9 +24,10 @@ from fem_dual.newton import NewtonSlabSolver
 from fem_dual.problem import SlabProblem
 from fem_dual.recovery import VertexSampler, VertexValues
 from fem_dual.solvers import LinearSlabSolver, solver_prefix
+from fem_dual.superposition import Superposition
 from meshes import SlabSchedule
 
-__all__ = ["RunResult", "run"]
+__all__ = ["RunResult", "Simulation", "run"]
 
 
 @dataclass
@@ -139,13 +140,6 @@ class _Accumulator:
                 "final_v": self.final_err[1]}
 
 
-def _make_solver(problem: SlabProblem, config: RunConfig):
-    prefix = solver_prefix(config.scene.name)
-    if config.scene.linear:
-        return LinearSlabSolver(problem, prefix, config.petsc)
-    return NewtonSlabSolver(problem, prefix, config.petsc)
-
-
 def _solver_record(solver, prefix: str) -> Dict[str, Any]:
     if isinstance(solver, NewtonSlabSolver):
         return {"kind": "snes", "prefix": prefix, "newton_iterations": list(solver.iterations),
@@ -161,40 +155,64 @@ def _progress_bar(T: float):
                 bar_format="{l_bar}{bar}| t={n:.4g}/{total:.4g} [{elapsed}<{remaining}, {rate_fmt}]")
 
 
-def run(config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD, progress: bool = False) -> RunResult:
-    """Solve the dual problem slab by slab, recover the primal motion, compare with the reference.
+class Simulation:
+    """A compiled slab problem with its solver and vertex sampler: everything a run builds before
+    its first slab. Build it once and `run` it for many horizons, start states or slab
+    settings of the same scene, degree and cells per slab (`fem-dual bench` does).
 
-    Nonlinear scenes retry a slab whose Newton (or DtP map) fails with half its length, up to
-    `config.max_halvings` times; `progress` shows a bar over the slabs on stderr (rank 0).
-
-    Raises:
-        SolveError: a slab failed; `partial` holds the result of the slabs completed before it,
-            whose output files (if any) are complete.
+    Args:
+        scene: the validated scene.
+        degree, cells: the dual fields' degree and the time cells per slab.
+        comm: the communicator.
+        petsc: PETSc options for the slab solver.
     """
-    quiet_jit_logging()
-    tic = time.perf_counter()
-    root = comm.rank == 0
-    if config.out is not None:  # before any work: a bad --out is bad input, on every rank
-        problem_text = None
-        if root:
-            try:
-                check_output_dir(config.out)
-            except InputError as exc:
-                problem_text = str(exc)
-        problem_text = bcast(comm, problem_text)
-        if problem_text:
-            raise InputError(problem_text)
-    scene = config.scene
-    problem = SlabProblem(scene, config.degree, config.cells, comm)
-    solver = _make_solver(problem, config)
-    tc = time.perf_counter()
-    sampler = VertexSampler(problem, with_dual=config.out is not None)
-    compile_s = solver.compile_s + time.perf_counter() - tc
 
+    def __init__(self, scene, degree: int, cells: int, comm: MPI.Comm = MPI.COMM_WORLD,
+                 petsc: Optional[Dict[str, str]] = None):
+        quiet_jit_logging()
+        tic = time.perf_counter()
+        self.scene, self.degree, self.cells, self.comm = scene, degree, cells, comm
+        self.problem = SlabProblem(scene, degree, cells, comm)
+        self.prefix = solver_prefix(scene.name)
+        if scene.linear:
+            self.solver = LinearSlabSolver(self.problem, self.prefix, petsc)
+        else:
+            self.solver = NewtonSlabSolver(self.problem, self.prefix, petsc)
+        self.sampler = VertexSampler(self.problem, with_dual=True)
+        self.setup_s = time.perf_counter() - tic
+        self._fresh = True
+
+    def uses_superposition(self, config: RunConfig) -> bool:
+        if config.superpose != "auto":
+            return config.superpose == "yes"
+        return self.scene.linear and config.slabs > 2 * self.scene.n
+
+    def run(self, config: RunConfig, progress: bool = False) -> RunResult:
+        """Solve the dual problem slab by slab, recover the primal motion, compare with the
+        reference (see `run`). The matrix is assembled and factored again in every run."""
+        if (config.scene.name, config.degree, config.cells) != (self.scene.name, self.degree,
+                                                                self.cells):
+            raise ValueError("the configuration does not match the compiled simulation")
+        if config.scene != self.scene:
+            self.problem.set_scene_constants(config.scene)
+            self.scene = config.scene
+        self.solver.reset()
+        return _run_slabs(self, config, progress)
+
+
+def _run_slabs(sim: Simulation, config: RunConfig, progress: bool) -> RunResult:
+    tic = time.perf_counter()
+    comm, scene, problem, solver, sampler = (sim.comm, sim.scene, sim.problem, sim.solver,
+                                             sim.sampler)
+    root = comm.rank == 0
+    superposition = Superposition(problem, solver, sampler) if sim.uses_superposition(config) \
+        else None
     acc = _Accumulator(config) if root else None
     outdir = OutputDir(config.out) if (root and config.out is not None) else None
     series: Optional[XdmfSeries] = None
-    timings = {"compile_s": compile_s, "solve_s": 0.0, "recovery_s": 0.0, "output_s": 0.0}
+    timings = {"compile_s": sim.setup_s if sim._fresh else 0.0, "solve_s": 0.0,
+               "recovery_s": 0.0, "output_s": 0.0}
+    sim._fresh = False
     lengths: List[float] = []
     retries: List[Dict[str, Any]] = []
     failure: Optional[SolveError] = None
@@ -206,12 +224,16 @@ def run(config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD, progress: bool = Fal
     k = 0
     while not schedule.done():
         t0, dt = schedule.current()
-        problem.set_slab(state[0], state[1], dt, t0)
         t1 = time.perf_counter()
         try:
-            solver.solve()
-            t2 = time.perf_counter()
-            vals = sampler()
+            if superposition is not None:
+                vals = superposition(state[0], state[1], dt)
+                t2 = time.perf_counter()
+            else:
+                problem.set_slab(state[0], state[1], dt, t0)
+                solver.solve()
+                t2 = time.perf_counter()
+                vals = sampler()
             if not bcast(comm, vals.finite() if root else None):
                 raise SolveError("the recovered state is not finite; try more slabs or cells")
         except SolveError as exc:
@@ -236,7 +258,10 @@ def run(config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD, progress: bool = Fal
             if bar is not None:
                 bar.update(dt)
         lengths.append(dt)
-        state = bcast(comm, (vals.x[-1].copy(), vals.v[-1].copy()) if root else None)
+        if superposition is None:  # the next slab's constants are set on every rank
+            state = bcast(comm, (vals.x[-1].copy(), vals.v[-1].copy()) if root else None)
+        elif root:
+            state = (vals.x[-1].copy(), vals.v[-1].copy())
         schedule.accept()
         k += 1
     if bar is not None:
@@ -255,15 +280,18 @@ def run(config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD, progress: bool = Fal
             files = [str(p) for p in outdir.commit()]
             timings["output_s"] += time.perf_counter() - t3
         timings["reference_s"] = acc.reference_s
-        timings["total_s"] = time.perf_counter() - tic
+        timings["total_s"] = time.perf_counter() - tic + timings["compile_s"]
+        record = _solver_record(solver, sim.prefix)
+        record["halved_slabs"] = retries
+        record["superposition"] = superposition is not None
+        record["slab_solves"] = (superposition.basis_solves if superposition is not None
+                                 else len(solver.iterations))
         result = RunResult(
             scene=scene.name, parameters=scene.parameters(), T=config.T, cells=config.cells,
             degree=config.degree, slabs=config.slabs, x0=config.x0.tolist(),
             v0=config.v0.tolist(), dofs_per_slab=problem.num_dofs, t=t, x=x, v=v,
             error=acc.error(), hamiltonian=acc.hamiltonian(), timings=timings,
-            solver=_solver_record(solver, solver_prefix(scene.name)),
-            slab_lengths=lengths, output_files=files)
-        result.solver["halved_slabs"] = retries
+            solver=record, slab_lengths=lengths, output_files=files)
         if failure is not None:
             result.status, result.message = "failed", str(failure)
     result = bcast(comm, result)
@@ -271,3 +299,28 @@ def run(config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD, progress: bool = Fal
         failure.partial = result
         raise failure
     return result
+
+
+def run(config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD, progress: bool = False) -> RunResult:
+    """Solve the dual problem slab by slab, recover the primal motion, compare with the reference.
+
+    Nonlinear scenes retry a slab whose Newton (or DtP map) fails with half its length, up to
+    `config.max_halvings` times; `progress` shows a bar over the slabs on stderr (rank 0).
+
+    Raises:
+        SolveError: a slab failed; `partial` holds the result of the slabs completed before it,
+            whose output files (if any) are complete.
+    """
+    quiet_jit_logging()
+    if config.out is not None:  # before any work: a bad --out is bad input, on every rank
+        problem_text = None
+        if comm.rank == 0:
+            try:
+                check_output_dir(config.out)
+            except InputError as exc:
+                problem_text = str(exc)
+        problem_text = bcast(comm, problem_text)
+        if problem_text:
+            raise InputError(problem_text)
+    sim = Simulation(config.scene, config.degree, config.cells, comm, config.petsc)
+    return sim.run(config, progress)

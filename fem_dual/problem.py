@@ -122,6 +122,15 @@ class SlabProblem:
         return self.scene.forms.position_equations(x, self.xi, self.eta, self.dxi, self.xbar,
                                                    self.c)
 
+    def set_scene_constants(self, scene: Scene) -> None:
+        """Use the parameter values of `scene`, a scene of the same kind and size (the forms
+        stay compiled: the parameters are fem.Constants)."""
+        if type(scene) is not type(self.scene) or scene.n != self.n:
+            raise ValueError(f"scene {scene.name} does not fit the compiled {self.scene.name}")
+        for key, value in scene.constants().items():
+            self.c[key].value = value
+        self.scene = scene
+
     def hamiltonian_of(self, xhat, vhat):
         """The auxiliary dual Hamiltonian (eq. DualHamiltonian) at the DtP image (xhat, vhat).
 

@@ -15,6 +15,7 @@ from typing import Optional
 
 import numpy as np
 import ufl
+from scipy import sparse
 
 from fem_dual.compat import CellPointEvaluator, vector_space_dg1
 from fem_dual.errors import SolveError
@@ -69,6 +70,7 @@ class VertexSampler:
         self._eval = CellPointEvaluator(ufl.as_vector(parts), ends)
         self._cells = np.arange(problem.mesh.msh.topology.index_map(1).size_local, dtype=np.int32)
         self._n = n
+        self._mean: Optional[sparse.csr_matrix] = None  # rows -> vertex means, built once
 
     def __call__(self) -> Optional[VertexValues]:
         """Sample the current dual solution; the result lives on rank 0 (None elsewhere).
@@ -76,21 +78,29 @@ class VertexSampler:
         Raises:
             SolveError: the implicit DtP map cannot be solved at a vertex.
         """
+        rows = self.rows()
+        return None if rows is None else self.average(rows)
+
+    def rows(self) -> Optional[np.ndarray]:
+        """One-sided values at both ends of every cell, gathered on rank 0 (None elsewhere):
+        columns s, x^ (n), v^ (n), H_d, then xi (n) and eta (n) when sampled."""
         if self.vertex_dtp is not None:
             self.vertex_dtp.reset(self.problem.xbar.value)
             message = self.vertex_dtp.solve(self.problem.comm)
             if message:
                 raise SolveError(message)
         local = self._eval(self._cells).reshape(-1, self._eval.value_size)
-        rows = gather_rows(self.problem.comm, local)
-        if rows is None:
-            return None
-        s, inverse = np.unique(rows[:, 0], return_inverse=True)
-        total = np.zeros((len(s), rows.shape[1]))
-        count = np.zeros(len(s))
-        np.add.at(total, inverse, rows)
-        np.add.at(count, inverse, 1.0)
-        mean = total / count[:, None]
+        return gather_rows(self.problem.comm, local)
+
+    def average(self, rows: np.ndarray) -> VertexValues:
+        """Vertex values from the one-sided rows: the mean of the rows that share a vertex."""
+        if self._mean is None or self._mean.shape[1] != len(rows):  # the rows' order never changes
+            s, inverse = np.unique(rows[:, 0], return_inverse=True)
+            count = np.bincount(inverse).astype(float)
+            self._mean = sparse.csr_matrix((1.0 / count[inverse], (inverse, np.arange(len(rows)))),
+                                           shape=(len(s), len(rows)))
+        mean = self._mean @ rows
+        s = mean[:, 0]
         n = self._n
         values = VertexValues(s=s, x=mean[:, 1:1 + n], v=mean[:, 1 + n:1 + 2 * n],
                               hamiltonian=mean[:, 1 + 2 * n])
