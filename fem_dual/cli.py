@@ -144,6 +144,10 @@ def _bench(args, params, comm: MPI.Comm) -> int:
                             v0=args.v0)
     degrees, cells = _int_list("degrees", args.degrees), _int_list("cells", args.cells)
     repeats = _int_list("repeats", args.repeats)[0]
+    for degree in degrees:  # every configuration is valid before anything runs
+        for n in cells:
+            for k in slabs:
+                RunConfig.create(base.scene, T=base.T, cells=n, degree=degree, slabs=k)
     out = None
     if comm.rank == 0:
         out = check_output_dir(args.out)
