@@ -62,6 +62,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--superpose", default="auto", help="linear scenes: yes = every slab from "
                    "the 2n solved unit start states (same numbers, far fewer solves), no = solve "
                    "every slab, auto (default) = yes when slabs > 2n")
+    r.add_argument("--staging", default="auto", help="auto (default) = a slab whose cells x "
+                   "degree^2 exceeds 800 is solved as equal sub-slabs that keep its matrix well "
+                   "conditioned (same total cells); off = solve the slabs as given")
+    r.add_argument("--recovery", default="momentum", help="primal state at the vertices: "
+                   "momentum (default, from the momenta of the dual Lagrangian, order 2p) or dtp "
+                   "(the DtP map with one-sided derivatives, order p)")
     r.add_argument("--out", help="write XDMF output into this directory")
     r.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     r.add_argument("--petsc-option", action="append", default=[], metavar="KEY=VALUE",
@@ -106,6 +112,11 @@ def _summary(result: RunResult) -> str:
 
     lines = [f"fem-dual run {result.scene}: T={result.T:g} cells={result.cells} "
              f"degree={result.degree} slabs={result.slabs} ({result.dofs_per_slab} dofs per slab)"]
+    stages = result.staging.get("stages_per_slab", 1)
+    if stages > 1:
+        lines.append(f"  staged  each slab solved as {stages} sub-slabs of "
+                     f"{result.staging['cells_per_solved_slab']} cells (conditioning rule; "
+                     "--staging off to disable)")
     if fin["t"] is not None:
         lines += [f"  final   t={fin['t']:g}  x={fmt(fin['x'])}  v={fmt(fin['v'])}",
                   f"  error   x_max={e['x_max']:.3e}  v_max={e['v_max']:.3e}  "
@@ -204,7 +215,8 @@ def main(argv: Optional[Sequence[str]] = None, comm: MPI.Comm = MPI.COMM_WORLD) 
         config = RunConfig.create(args.scene, params, T=args.T, cells=args.cells,
                                   degree=args.degree, slabs=args.slabs, x0=args.x0, v0=args.v0,
                                   out=args.out, petsc=petsc, max_halvings=args.max_halvings,
-                                  superpose=args.superpose)
+                                  superpose=args.superpose, staging=args.staging,
+                                  recovery=args.recovery)
         result = run(config, comm, progress=not args.json and sys.stderr.isatty())
     except InputError as exc:
         print0(comm, f"fem-dual: error: {exc}", file=sys.stderr)

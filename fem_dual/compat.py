@@ -23,14 +23,15 @@ def quiet_jit_logging() -> None:
         root.addFilter(_drop_info)
 
 
-def vector_space(msh, degree: int, dim: int) -> fem.FunctionSpace:
-    """One blocked Lagrange space of `dim` components (0.5.2: ufl.VectorElement)."""
-    return fem.FunctionSpace(msh, ufl.VectorElement("Lagrange", msh.ufl_cell(), degree, dim=dim))
+def vector_space(msh, degree: int, dim: int, family: str = "Lagrange") -> fem.FunctionSpace:
+    """One blocked Lagrange (or "DG") space of `dim` components (0.5.2: ufl.VectorElement).
+    On an interval, the first two dofs of a cell sit at its reference points 0 and 1."""
+    return fem.FunctionSpace(msh, ufl.VectorElement(family, msh.ufl_cell(), degree, dim=dim))
 
 
 def vector_space_dg1(msh, dim: int) -> fem.FunctionSpace:
     """Discontinuous P1 with `dim` components; its cell dofs sit at reference points 0 and 1."""
-    return fem.FunctionSpace(msh, ufl.VectorElement("DG", msh.ufl_cell(), 1, dim=dim))
+    return vector_space(msh, 1, dim, "DG")
 
 
 def constant(msh, value) -> fem.Constant:

@@ -9,14 +9,21 @@ from typing import Dict, Mapping, Optional, Sequence, Union
 import numpy as np
 
 from fem_dual.errors import InputError
+from fem_dual.recovery import RECOVERIES
 from fem_dual.scenes import Scene, get_scene
 from fem_dual.scenes.base import parse_number, parse_vector
 
-__all__ = ["RunConfig", "MAX_VERTICES", "MAX_DEGREE"]
+__all__ = ["RunConfig", "MAX_VERTICES", "MAX_DEGREE", "STAGING_LIMIT"]
 
 MAX_VERTICES = 20_000_000  # over the whole run: the vertex arrays of the JSON must fit in memory
 SUPERPOSE = ("auto", "yes", "no")
 MAX_DEGREE = 10  # equispaced Lagrange bases beyond this are too ill-conditioned to be useful
+# The conditioning rule: the slab matrix's condition number grows like (cells * degree^2)^2 and
+# amplifies the round-off of its assembly into the recovered state (measured in README, "Where
+# to trust it"). With staging on, a slab with cells * degree^2 above this limit is solved as the
+# fewest equal sub-slabs that satisfy it; the total number of time cells stays the same.
+STAGING_LIMIT = 800
+STAGING = ("auto", "off")
 
 Number = Union[int, float, str]
 
@@ -49,6 +56,25 @@ class RunConfig:
     petsc: Dict[str, str] = field(default_factory=dict)
     max_halvings: int = 6
     superpose: str = "auto"  # linear scenes: slabs by superposition (auto: when slabs > 2n)
+    staging: str = "auto"  # auto: split slabs whose cells * degree^2 > STAGING_LIMIT
+    recovery: str = "momentum"  # primal state from the momenta of L_d, or "dtp" (the DtP map)
+
+    @property
+    def stages(self) -> int:
+        """Sub-slabs per requested slab under the conditioning rule (1 with staging off)."""
+        if self.staging == "off":
+            return 1
+        return max(1, math.ceil(self.cells * self.degree ** 2 / STAGING_LIMIT))
+
+    @property
+    def slab_cells(self) -> int:
+        """Time cells per solved slab."""
+        return math.ceil(self.cells / self.stages)
+
+    @property
+    def slab_count(self) -> int:
+        """Number of solved slabs (requested slabs times stages)."""
+        return self.slabs * self.stages
 
     @classmethod
     def create(cls, scene: Union[str, Scene], params: Optional[Mapping[str, object]] = None, *,
@@ -57,7 +83,8 @@ class RunConfig:
                v0: Optional[Union[str, Sequence[float]]] = None,
                out: Optional[Union[str, Path]] = None,
                petsc: Optional[Mapping[str, str]] = None,
-               max_halvings: Number = 6, superpose: str = "auto") -> "RunConfig":
+               max_halvings: Number = 6, superpose: str = "auto", staging: str = "auto",
+               recovery: str = "momentum") -> "RunConfig":
         """Validate every input; raises InputError naming the first bad value."""
         if isinstance(scene, str):
             scene = get_scene(scene).from_params(params)
@@ -90,5 +117,10 @@ class RunConfig:
             raise InputError(f"superpose={superpose!r} is not one of {', '.join(SUPERPOSE)}")
         if superpose == "yes" and not scene.linear:
             raise InputError(f"superpose=yes needs a linear scene ({scene.name} is nonlinear)")
+        if staging not in STAGING:
+            raise InputError(f"staging={staging!r} is not one of {', '.join(STAGING)}")
+        if recovery not in RECOVERIES:
+            raise InputError(f"recovery={recovery!r} is not one of {', '.join(RECOVERIES)}")
         return cls(scene, T_value, cells_, degree_, slabs_, x0_, v0_,
-                   None if out is None else Path(out), petsc_, halvings, superpose)
+                   None if out is None else Path(out), petsc_, halvings, superpose, staging,
+                   recovery)

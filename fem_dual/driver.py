@@ -16,7 +16,7 @@ import numpy as np
 from mpi4py import MPI
 
 from fem_dual.compat import quiet_jit_logging
-from fem_dual.config import RunConfig
+from fem_dual.config import STAGING_LIMIT, RunConfig
 from fem_dual.errors import InputError, SolveError
 from fem_dual.mpi import bcast
 from fem_dual.output import OutputDir, check_output_dir, XdmfSeries, write_polyline
@@ -54,6 +54,8 @@ class RunResult:
     status: str = "ok"
     message: str = ""
     output_files: List[str] = field(default_factory=list)
+    staging: Dict[str, Any] = field(default_factory=dict)
+    recovery: str = "momentum"
 
     @property
     def final(self) -> Dict[str, List[float]]:
@@ -85,6 +87,7 @@ class RunResult:
             "dofs_per_slab": self.dofs_per_slab, "slab_lengths": self.slab_lengths,
             "final": self.final, "error": self.error, "hamiltonian": self.hamiltonian,
             "solver": self.solver, "timings": self.timings, "output_files": self.output_files,
+            "staging": self.staging, "recovery": self.recovery,
         }
         if arrays:
             out.update(t=self.t.tolist(), x=self.x.tolist(), v=self.v.tolist())
@@ -162,13 +165,14 @@ class Simulation:
 
     Args:
         scene: the validated scene.
-        degree, cells: the dual fields' degree and the time cells per slab.
+        degree, cells: the dual fields' degree and the time cells per solved slab.
         comm: the communicator.
         petsc: PETSc options for the slab solver.
+        recovery: how the primal state is read from the dual solution ("momentum" or "dtp").
     """
 
     def __init__(self, scene, degree: int, cells: int, comm: MPI.Comm = MPI.COMM_WORLD,
-                 petsc: Optional[Dict[str, str]] = None):
+                 petsc: Optional[Dict[str, str]] = None, recovery: str = "momentum"):
         quiet_jit_logging()
         tic = time.perf_counter()
         self.scene, self.degree, self.cells, self.comm = scene, degree, cells, comm
@@ -178,20 +182,27 @@ class Simulation:
             self.solver = LinearSlabSolver(self.problem, self.prefix, petsc)
         else:
             self.solver = NewtonSlabSolver(self.problem, self.prefix, petsc)
-        self.sampler = VertexSampler(self.problem, with_dual=True)
+        self.recovery = recovery
+        self.sampler = VertexSampler(self.problem, with_dual=True, recovery=recovery)
         self.setup_s = time.perf_counter() - tic
         self._fresh = True
 
     def uses_superposition(self, config: RunConfig) -> bool:
         if config.superpose != "auto":
             return config.superpose == "yes"
-        return self.scene.linear and config.slabs > 2 * self.scene.n
+        return self.scene.linear and config.slab_count > 2 * self.scene.n
+
+    @classmethod
+    def for_config(cls, config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD) -> "Simulation":
+        """The simulation that runs `config` (its staged cells per slab)."""
+        return cls(config.scene, config.degree, config.slab_cells, comm, config.petsc,
+                   config.recovery)
 
     def run(self, config: RunConfig, progress: bool = False) -> RunResult:
         """Solve the dual problem slab by slab, recover the primal motion, compare with the
         reference (see `run`). The matrix is assembled and factored again in every run."""
-        if (config.scene.name, config.degree, config.cells) != (self.scene.name, self.degree,
-                                                                self.cells):
+        if ((config.scene.name, config.degree, config.slab_cells, config.recovery)
+                != (self.scene.name, self.degree, self.cells, self.recovery)):
             raise ValueError("the configuration does not match the compiled simulation")
         if config.scene != self.scene:
             self.problem.set_scene_constants(config.scene)
@@ -219,7 +230,7 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool) -> RunResult:
     state = (config.x0, config.v0)
 
     halvings = 0 if scene.linear else config.max_halvings  # a linear solve does not diverge
-    schedule = SlabSchedule(config.T, config.slabs, halvings)
+    schedule = SlabSchedule(config.T, config.slab_count, halvings)
     bar = _progress_bar(config.T) if (progress and root) else None
     k = 0
     while not schedule.done():
@@ -250,7 +261,7 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool) -> RunResult:
                 t3 = time.perf_counter()
                 if series is None:
                     series = XdmfSeries(outdir.file(f"{scene.name}.xdmf"),
-                                        config.T / config.slabs * vals.s)
+                                        config.T / config.slab_count * vals.s)
                 series.write(t0, {"t": t0 + dt * vals.s, "xi": vals.xi, "eta": vals.eta,
                                   "x_hat": vals.x, "v_hat": vals.v,
                                   "hamiltonian": vals.hamiltonian})
@@ -291,7 +302,11 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool) -> RunResult:
             degree=config.degree, slabs=config.slabs, x0=config.x0.tolist(),
             v0=config.v0.tolist(), dofs_per_slab=problem.num_dofs, t=t, x=x, v=v,
             error=acc.error(), hamiltonian=acc.hamiltonian(), timings=timings,
-            solver=record, slab_lengths=lengths, output_files=files)
+            solver=record, slab_lengths=lengths, output_files=files,
+            staging={"mode": config.staging, "stages_per_slab": config.stages,
+                     "solved_slabs": config.slab_count, "cells_per_solved_slab": config.slab_cells,
+                     "limit_cells_times_degree_squared": STAGING_LIMIT},
+            recovery=config.recovery)
         if failure is not None:
             result.status, result.message = "failed", str(failure)
     result = bcast(comm, result)
@@ -322,5 +337,4 @@ def run(config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD, progress: bool = Fal
         problem_text = bcast(comm, problem_text)
         if problem_text:
             raise InputError(problem_text)
-    sim = Simulation(config.scene, config.degree, config.cells, comm, config.petsc)
-    return sim.run(config, progress)
+    return Simulation.for_config(config, comm).run(config, progress)

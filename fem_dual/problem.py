@@ -73,10 +73,10 @@ class SlabProblem:
         self.xhat, self.vhat, self.L_d = self._reduced_lagrangian(qdeg)
         self.hamiltonian = self.hamiltonian_of(self.xhat, self.vhat)
 
-        dx = ufl.Measure("dx", domain=msh, metadata={"quadrature_degree": qdeg})
+        self.dx = ufl.Measure("dx", domain=msh, metadata={"quadrature_degree": qdeg})
         ds = ufl.Measure("ds", domain=msh, subdomain_data=self.mesh.tags)
         initial = boundary_term(self.xi, self.eta, M, self.x0, self.v0)
-        self.action = self.L_d * self.dt * dx + initial * ds(START)
+        self.action = self.L_d * self.dt * self.dx + initial * ds(START)
         self.residual = ufl.derivative(self.action, w, ufl.TestFunction(self.W))
         self.jacobian = ufl.derivative(self.residual, w, ufl.TrialFunction(self.W))
 

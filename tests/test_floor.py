@@ -1,0 +1,60 @@
+"""The round-off floor (issue 5): refinement keeps reducing the error down to about 1e-12.
+
+Without staging, the error of a single slab stops falling and then grows like (cells p^2)^2: the
+slab matrix's condition number amplifies the round-off of its assembly. Staging (the
+conditioning rule) and the momentum recovery (order 2p, exact slab end states) remove that.
+"""
+import numpy as np
+import pytest
+
+from fem_dual import RunConfig, run
+from fem_dual.cli import main
+from fem_dual.config import STAGING_LIMIT
+
+
+def _errors(cells_list, **kw):
+    return [run(RunConfig.create("ziegler", T=10.0, degree=4, cells=c, **kw)).error["x_max"]
+            for c in cells_list]
+
+
+@pytest.mark.mpi
+def test_refinement_reaches_the_floor_and_stays_there():
+    cells = [5, 10, 20, 40, 80, 400, 1600, 3200]
+    errors = _errors(cells)
+    assert errors[0] > 1e-6  # a real refinement study, not a flat line
+    first = next(i for i, e in enumerate(errors) if e <= 1e-11)
+    assert np.all(np.diff(np.log(errors[:first + 1])) < -np.log(4)), errors  # falling fast
+    assert max(errors[first:]) <= 1e-11, errors  # the floor, target of the issue
+
+
+@pytest.mark.mpi
+def test_without_staging_round_off_grows_with_the_cells():
+    """The measured cause: a single slab of 3200 cells is 100x worse than one of 80."""
+    coarse, fine = _errors([80, 3200], staging="off")
+    assert fine > 100 * coarse, (coarse, fine)
+
+
+@pytest.mark.mpi
+def test_staging_is_the_same_as_asking_for_the_sub_slabs():
+    staged = run(RunConfig.create("ziegler", T=6.0, degree=4, cells=400, slabs=2))
+    stages = staged.staging["stages_per_slab"]
+    assert stages == -(-400 * 16 // STAGING_LIMIT) == 8
+    assert staged.staging["cells_per_solved_slab"] == 50 and len(staged.slab_lengths) == 16
+    plain = run(RunConfig.create("ziegler", T=6.0, degree=4, cells=50, slabs=16))
+    assert np.array_equal(staged.t, plain.t)
+    assert np.allclose(staged.x, plain.x, rtol=0, atol=1e-15)
+    assert staged.slabs == 2 and staged.cells == 400  # the request is reported as made
+
+
+def test_below_the_limit_nothing_is_staged():
+    config = RunConfig.create("ziegler", degree=2, cells=200)
+    assert (config.stages, config.slab_cells, config.slab_count) == (1, 200, 1)
+    config = RunConfig.create("ziegler", degree=2, cells=201)
+    assert (config.stages, config.slab_cells, config.slab_count) == (2, 101, 2)
+
+
+@pytest.mark.parametrize("option", ["--staging=sometimes", "--recovery=average"])
+def test_bad_staging_or_recovery_is_bad_input(option, capsys):
+    assert main(["run", "ziegler", option]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and option.split("=")[1] in err
