@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
 from typing import List, Optional, Sequence
 
@@ -200,6 +201,8 @@ def _flutter(args, params, comm: MPI.Comm) -> int:
 
 
 def main(argv: Optional[Sequence[str]] = None, comm: MPI.Comm = MPI.COMM_WORLD) -> int:
+    if argv is None and hasattr(signal, "SIGPIPE"):  # `fem-dual ... | head`: end quietly, as
+        signal.signal(signal.SIGPIPE, signal.SIG_DFL)  # Unix tools do (not PETSc's handler)
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
         args = build_parser().parse_args(_join_negative_values(argv))

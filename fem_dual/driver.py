@@ -8,6 +8,7 @@ RunResult.
 from __future__ import annotations
 
 import json
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional
@@ -211,6 +212,19 @@ class Simulation:
         return _run_slabs(self, config, progress)
 
 
+def check_resolution(rate: Optional[float], dt: float, cells: int, degree: int) -> None:
+    """SolveError when a time cell spans more radians of the fastest mode (`rate`, known for
+    linear scenes, else None) than the degree can follow (rate * h > p): the answer would be
+    noise, however well solved."""
+    h = dt / cells
+    if rate is not None and rate * h > degree:
+        factor = math.ceil(rate * h / degree)
+        raise SolveError(f"under-resolved: the fastest mode (|lambda| = {rate:.4g}) turns "
+                         f"{rate * h:.3g} radians per time cell, more than degree {degree} can "
+                         f"follow; use {factor}x more slabs or cells per slab, or a higher "
+                         "degree")
+
+
 def _run_slabs(sim: Simulation, config: RunConfig, progress: bool) -> RunResult:
     tic = time.perf_counter()
     comm, scene, problem, solver, sampler = (sim.comm, sim.scene, sim.problem, sim.solver,
@@ -230,6 +244,7 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool) -> RunResult:
     state = (config.x0, config.v0)
 
     halvings = 0 if scene.linear else config.max_halvings  # a linear solve does not diverge
+    rate = scene.fastest_rate() if scene.linear else None
     schedule = SlabSchedule(config.T, config.slab_count, halvings)
     bar = _progress_bar(config.T) if (progress and root) else None
     k = 0
@@ -237,6 +252,7 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool) -> RunResult:
         t0, dt = schedule.current()
         t1 = time.perf_counter()
         try:
+            check_resolution(rate, dt, problem.mesh.cells, config.degree)
             if superposition is not None:
                 vals = superposition(state[0], state[1], dt)
                 t2 = time.perf_counter()
@@ -295,6 +311,8 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool) -> RunResult:
         record = _solver_record(solver, sim.prefix)
         record["halved_slabs"] = retries
         record["superposition"] = superposition is not None
+        if scene.linear:
+            record["weighting"] = scene.weighting()
         record["slab_solves"] = (superposition.basis_solves if superposition is not None
                                  else len(solver.iterations))
         result = RunResult(

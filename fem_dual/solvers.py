@@ -125,3 +125,28 @@ class LinearSlabSolver(CompiledSlab):
             raise SolveError(f"linear solve did not converge (KSP reason {reason})")
         self.iterations.append(self.ksp.getIterationNumber())
         p.w.x.scatter_forward()
+
+    def condition_estimate(self, iterations: int = 60) -> float:
+        """lambda_max / lambda_min of the slab matrix (SPD) by power iteration on it and on its
+        inverse (the factorisation of the last solve), on the free dofs only (the Dirichlet rows
+        are identity rows). An estimate from below, good to a few per cent. Collective."""
+        if self._assembled_dt != float(self.problem.dt.value):
+            self.solve()
+        lam_max = _largest_eigenvalue(self.A.mult, self.A, self.problem.bcs, iterations)
+        lam_min = 1.0 / _largest_eigenvalue(self.ksp.solve, self.A, self.problem.bcs, iterations)
+        return lam_max / lam_min
+
+
+def _largest_eigenvalue(apply, A: PETSc.Mat, bcs, iterations: int) -> float:
+    """Rayleigh quotient after power iteration with `apply(x, y)` (y = op x), x zero on bcs."""
+    x, y = A.createVecs()
+    x.setRandom()
+    value = 0.0
+    for _ in range(iterations):
+        fem_petsc.set_bc(x, bcs)
+        x.normalize()
+        apply(x, y)
+        fem_petsc.set_bc(y, bcs)
+        value = x.dot(y)
+        x, y = y, x
+    return value

@@ -2,7 +2,8 @@
 declaration of what it needs (its forms module, linear or nonlinear solve, its reference).
 
 Fields are floats unless their metadata says `kind="matrix"`: an n x n matrix given on the
-command line as `NAME=a11,a12,...` (row-major) or `NAME=s` for s times the identity.
+command line as `NAME=a11,a12,...` (row-major) or `NAME=s` for s times the identity; "per_link":
+one value or one per link; "choice": one of a few names.
 """
 from __future__ import annotations
 
@@ -16,8 +17,8 @@ import numpy as np
 
 from fem_dual.errors import InputError
 
-__all__ = ["Scene", "matrix_field", "per_link_field", "parse_number", "parse_vector",
-           "require_spd", "require_positive"]
+__all__ = ["Scene", "matrix_field", "per_link_field", "choice_field", "parse_number",
+           "parse_vector", "require_spd", "require_positive", "is_spd"]
 
 
 def matrix_field(doc: str):
@@ -70,6 +71,19 @@ def per_link_field(default: float, doc: str):
     return dataclasses.field(default=default, metadata={"kind": "per_link", "doc": doc})
 
 
+def choice_field(default: str, choices: Tuple[str, ...], doc: str):
+    """A dataclass field holding one of `choices` (a name, not a number)."""
+    return dataclasses.field(default=default, metadata={"kind": "choice", "choices": choices,
+                                                        "doc": doc})
+
+
+def _parse_choice(name: str, text, choices: Tuple[str, ...]) -> str:
+    value = str(text).strip()
+    if value not in choices:
+        raise InputError(f"{name}={_show(text)} is not one of {', '.join(choices)}")
+    return value
+
+
 def _parse_per_link(name: str, text, n: int) -> list:
     items = text.split(",") if isinstance(text, str) else list(np.ravel([text]))
     values = [parse_number(name, item) for item in items]
@@ -89,6 +103,12 @@ def require_positive(scene: "Scene", *names: str) -> None:
         value = getattr(scene, name)
         if not value > 0:
             raise InputError(f"{name}={value!r} must be positive")
+
+
+def is_spd(matrix: np.ndarray) -> bool:
+    scale = max(np.abs(matrix).max(), 1e-300)
+    return (np.abs(matrix - matrix.T).max() <= 1e-12 * scale
+            and np.linalg.eigvalsh(0.5 * (matrix + matrix.T)).min() > 0)
 
 
 def require_spd(name: str, matrix: np.ndarray) -> None:
@@ -145,6 +165,8 @@ class Scene(abc.ABC):
                 values[key] = tuple(map(tuple, _parse_matrix(key, text, n)))
             elif kind[key] == "per_link":
                 values[key] = tuple(_parse_per_link(key, text, n))
+            elif kind[key] == "choice":
+                values[key] = _parse_choice(key, text, known[key].metadata["choices"])
         scene = cls(**values)
         scene.validate()
         return scene

@@ -1,7 +1,15 @@
 """Linear second-order systems M q'' + D q' + K q = 0 (reference, section 3.3 and its closing
 remark): the base of every linear scene. A subclass gives M, K and D from its parameters; H is
-1/2 q.A q + 1/2 v.B v with SPD `A` (default I) and `B` (default M^2, which makes the principal
-part of the dual Euler-Lagrange system the identity)."""
+1/2 q.A q + 1/2 v.B v with SPD `A` and `B`.
+
+The weights (the conditioning rule, measured in the README, "Where to trust it"): the dual
+Euler-Lagrange system is balanced when A / B scales like K M, so that its zero- and first-order
+parts differ by the squared frequencies in both the xi and the eta block. Two choices satisfy it:
+"identity" (A = I, B = M^2: the principal part is the identity) for problems of one time scale,
+and "energy" (A = sym K, B = M: H is the energy of the deviation from the base state), which
+keeps every mode balanced when fast and slow modes coexist. "auto" picks energy when the
+frequencies of M^-1 K spread by more than STIFF_SPREAD and sym K is positive definite.
+"""
 from __future__ import annotations
 
 import abc
@@ -13,9 +21,11 @@ import numpy as np
 import forms.linear as linear_forms
 from fem_dual.reference import LinearFlow, first_order_matrix
 from fem_dual.errors import InputError
-from fem_dual.scenes.base import Scene, matrix_field, require_spd
+from fem_dual.scenes.base import Scene, choice_field, is_spd, matrix_field, require_spd
 
-__all__ = ["LinearScene", "GeneralLinear"]
+__all__ = ["LinearScene", "GeneralLinear", "STIFF_SPREAD"]
+
+STIFF_SPREAD = 5.0  # omega_max / omega_min beyond which auto weights are "energy"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -25,8 +35,10 @@ class LinearScene(Scene):
     linear: ClassVar[bool] = True
     forms: ClassVar = linear_forms
 
-    A: Optional[tuple] = matrix_field("H's position matrix (SPD); default identity")
-    B: Optional[tuple] = matrix_field("H's velocity matrix (SPD); default M^2")
+    A: Optional[tuple] = matrix_field("H's position matrix (SPD); default from `weights`")
+    B: Optional[tuple] = matrix_field("H's velocity matrix (SPD); default from `weights`")
+    weights: str = choice_field("auto", ("auto", "identity", "energy"),
+                                "default A, B: identity (I, M^2), energy (sym K, M), auto")
 
     @abc.abstractmethod
     def stiffness_matrix(self) -> np.ndarray:
@@ -35,15 +47,36 @@ class LinearScene(Scene):
     def damping_matrix(self) -> np.ndarray:
         return np.zeros((self.n, self.n))
 
+    def frequency_spread(self) -> float:
+        """omega_max / omega_min over the eigenvalues of M^-1 K (inf if one is zero)."""
+        lam = np.abs(np.linalg.eigvals(np.linalg.solve(self.mass_matrix(),
+                                                       self.stiffness_matrix())))
+        return float(np.sqrt(lam.max() / lam.min())) if lam.min() > 0 else float("inf")
+
+    def weighting(self) -> str:
+        """The weights in use: `weights`, with auto resolved by the conditioning rule."""
+        if self.weights != "auto":
+            return self.weights
+        K = self.stiffness_matrix()
+        energy = self.frequency_spread() > STIFF_SPREAD and is_spd(0.5 * (K + K.T))
+        return "energy" if energy else "identity"
+
     def A_matrix(self) -> np.ndarray:
+        if self.weighting() == "energy":
+            K = self.stiffness_matrix()
+            return self.matrix("A", 0.5 * (K + K.T))
         return self.matrix("A", np.eye(self.n))
 
     def B_matrix(self) -> np.ndarray:
         M = self.mass_matrix()
-        return self.matrix("B", M @ M)
+        return self.matrix("B", M if self.weighting() == "energy" else M @ M)
 
     def validate(self) -> None:
         require_spd("M", self.mass_matrix())
+        K = self.stiffness_matrix()
+        if self.weights == "energy" and self.A is None and not is_spd(0.5 * (K + K.T)):
+            raise InputError("weights=energy needs sym(K) positive definite (it is A); "
+                             "use weights=identity or give A")
         require_spd("A", self.A_matrix())
         require_spd("B", self.B_matrix())
 
@@ -55,6 +88,11 @@ class LinearScene(Scene):
     def first_order_matrix(self) -> np.ndarray:
         return first_order_matrix(self.mass_matrix(), self.stiffness_matrix(),
                                   self.damping_matrix())
+
+    def fastest_rate(self) -> float:
+        """max |lambda| over the eigenvalues of the first-order system (radians per unit time,
+        growth and decay included)."""
+        return float(np.abs(np.linalg.eigvals(self.first_order_matrix())).max())
 
     def reference(self, x0, v0) -> LinearFlow:
         return LinearFlow(self.first_order_matrix(), x0, v0)
