@@ -1,7 +1,8 @@
-"""Command line: `fem-dual run SCENE ...` and `fem-dual scenes`.
+"""Command line: `fem-dual run | bench | flutter | stress | scenes`.
 
 Exit status: 0 success, 2 bad input (one line on stderr naming the value), 3 a failed solve (the
-slabs completed before it are kept, in the output files and in the JSON with status "failed").
+slabs completed before it are kept, in the output files and in the JSON with status "failed");
+`stress` exits 1 when a case did not behave as it must.
 """
 from __future__ import annotations
 
@@ -86,6 +87,12 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--cells", default="16", help="cells per slab (default 16)")
     f.add_argument("--degree", default="5", help="degree of the dual fields (default 5)")
     f.add_argument("--json", action="store_true", help="print {eigen, dual, eigen_s, dual_s}")
+    st = sub.add_parser("stress", help="stiff and extreme cases against their references")
+    st.add_argument("--case", action="append", default=[], metavar="NAME",
+                    help="run only this case (repeatable; --list shows the names)")
+    st.add_argument("--slow", action="store_true", help="also the slow cases (long horizons)")
+    st.add_argument("--list", action="store_true", help="list the cases and what they expect")
+    st.add_argument("--json", action="store_true", help='print {"rows": [...], "passed": ...}')
     sub.add_parser("scenes", help="list the scenes, their parameters and defaults")
     return parser
 
@@ -200,6 +207,28 @@ def _flutter(args, params, comm: MPI.Comm) -> int:
     return 0
 
 
+def _stress(args, comm: MPI.Comm) -> int:
+    """Exit 0 when every case behaved as it must, 1 when one FAILed."""
+    import dataclasses
+
+    from fem_dual import stress as st
+
+    if args.list:
+        print0(comm, "\n".join(f"{c.name}{' (slow)' if c.slow else ''}: {c.expected}"
+                                for c in st.CASES))
+        return 0
+    rows = st.stress(args.case, slow=args.slow, comm=comm)
+    passed = all(r.status != "FAIL" for r in rows)
+    if args.json:
+        print0(comm, json.dumps({"rows": [dataclasses.asdict(r) for r in rows],
+                                 "passed": passed}, allow_nan=False))
+    else:
+        print0(comm, st.table(rows))
+        print0(comm, f"{sum(r.status != 'FAIL' for r in rows)} of {len(rows)} cases behaved as "
+                     "they must" + ("" if passed else "; FAIL marks the others"))
+    return 0 if passed else 1
+
+
 def main(argv: Optional[Sequence[str]] = None, comm: MPI.Comm = MPI.COMM_WORLD) -> int:
     if argv is None and hasattr(signal, "SIGPIPE"):  # `fem-dual ... | head`: end quietly, as
         signal.signal(signal.SIGPIPE, signal.SIG_DFL)  # Unix tools do (not PETSc's handler)
@@ -209,11 +238,13 @@ def main(argv: Optional[Sequence[str]] = None, comm: MPI.Comm = MPI.COMM_WORLD) 
         if args.command == "scenes":
             print0(comm, _list_scenes())
             return 0
-        params = dict(_key_value(p, "--param") for p in args.param)
+        params = dict(_key_value(p, "--param") for p in getattr(args, "param", []))
         if args.command == "bench":
             return _bench(args, params, comm)
         if args.command == "flutter":
             return _flutter(args, params, comm)
+        if args.command == "stress":
+            return _stress(args, comm)
         petsc = dict(_key_value(p, "--petsc-option") for p in args.petsc_option)
         config = RunConfig.create(args.scene, params, T=args.T, cells=args.cells,
                                   degree=args.degree, slabs=args.slabs, x0=args.x0, v0=args.v0,

@@ -15,8 +15,17 @@ def _collective_teardown():
     MPI.COMM_WORLD.barrier()
 
 
+def pytest_addoption(parser):
+    parser.addoption("--slow", action="store_true", help="also run the tests marked slow")
+
+
 def pytest_collection_modifyitems(config, items):
-    """Under mpirun, skip what is only meaningful on one rank."""
+    """Under mpirun, skip what is only meaningful on one rank; skip slow tests unless --slow."""
+    if not config.getoption("--slow"):
+        skip_slow = pytest.mark.skip(reason="slow: run with pytest --slow")
+        for item in items:
+            if "slow" in item.keywords:
+                item.add_marker(skip_slow)
     if MPI.COMM_WORLD.size > 1:
         skip = pytest.mark.skip(reason="serial-only test")
         for item in items:
