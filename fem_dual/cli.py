@@ -97,6 +97,11 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _one_line(text: str) -> str:
+    """The message with control characters (a newline in a bad value) escaped."""
+    return "".join(ch if ch.isprintable() else repr(ch)[1:-1] for ch in str(text))
+
+
 def _join_negative_values(argv: Sequence[str]) -> List[str]:
     out: List[str] = []
     i = 0
@@ -162,7 +167,10 @@ def _bench(args, params, comm: MPI.Comm) -> int:
     base = RunConfig.create(args.scene, params, T=args.T, slabs=slabs[0], x0=args.x0,
                             v0=args.v0)
     degrees, cells = _int_list("degrees", args.degrees), _int_list("cells", args.cells)
-    repeats = _int_list("repeats", args.repeats)[0]
+    repeats = _int_list("repeats", args.repeats)
+    if len(repeats) != 1 or repeats[0] > 100:
+        raise InputError(f"repeats={args.repeats!r} must be one whole number from 1 to 100")
+    repeats = repeats[0]
     for degree in degrees:  # every configuration is valid before anything runs
         for n in cells:
             for k in slabs:
@@ -253,10 +261,10 @@ def main(argv: Optional[Sequence[str]] = None, comm: MPI.Comm = MPI.COMM_WORLD) 
                                   recovery=args.recovery)
         result = run(config, comm, progress=not args.json and sys.stderr.isatty())
     except InputError as exc:
-        print0(comm, f"fem-dual: error: {exc}", file=sys.stderr)
+        print0(comm, f"fem-dual: error: {_one_line(exc)}", file=sys.stderr)
         return InputError.exit_status
     except SolveError as exc:
-        print0(comm, f"fem-dual: solve failed: {exc}", file=sys.stderr)
+        print0(comm, f"fem-dual: solve failed: {_one_line(exc)}", file=sys.stderr)
         if exc.partial is not None and args.command == "run" and args.json and comm.rank == 0:
             exc.partial.write_json(sys.stdout)
         return SolveError.exit_status

@@ -28,6 +28,8 @@ def matrix_field(doc: str):
 
 def parse_number(name: str, text: "str | float") -> float:
     """A finite float, or InputError naming `name` and the bad text."""
+    if isinstance(text, bool):
+        raise InputError(f"{name}={text!r} is not a number")
     try:
         value = float(text)
     except (TypeError, ValueError):
@@ -39,14 +41,25 @@ def parse_number(name: str, text: "str | float") -> float:
 
 def parse_vector(name: str, text: "str | tuple | list", n: int) -> np.ndarray:
     """A finite vector of exactly n entries, from 'a,b,..' or a sequence."""
-    items = text.split(",") if isinstance(text, str) else list(text)
+    if isinstance(text, str):
+        items = text.split(",")
+    else:
+        try:
+            items = list(text)
+        except TypeError:  # a scalar
+            items = [text]
     if len(items) != n:
         raise InputError(f"{name}={_show(text)} has {len(items)} entries, expected {n}")
     return np.array([parse_number(name, item) for item in items])
 
 
 def _show(text) -> str:
-    return text if isinstance(text, str) else ",".join(str(t) for t in text)
+    if isinstance(text, str):
+        return text
+    try:
+        return ",".join(str(t) for t in text)
+    except TypeError:
+        return str(text)
 
 
 def _parse_matrix(name: str, text: "str | float | np.ndarray | tuple", n: int) -> np.ndarray:
