@@ -35,7 +35,8 @@ def test_parallel_equals_serial(scene):
     assert np.array_equal(par.t, ser.t)
     assert _close(par.x, ser.x) and _close(par.v, ser.v)
     assert par.hamiltonian["min"] == pytest.approx(ser.hamiltonian["min"], rel=1e-8)
-    assert par.error["x_max"] == pytest.approx(ser.error["x_max"], rel=1e-6, abs=1e-14)
+    # the errors agree to round-off (LU in serial, MUMPS in parallel)
+    assert par.error["x_max"] == pytest.approx(ser.error["x_max"], rel=1e-6, abs=1e-12)
 
 
 @pytest.mark.mpi
