@@ -178,7 +178,11 @@ def _bench(args, params, comm: MPI.Comm) -> int:
     out = None
     if comm.rank == 0:
         out = check_output_dir(args.out)
-    rows = bm.bench(base, degrees, cells, repeats=repeats, comm=comm, slabs=slabs)
+    skipped: List[str] = []
+    rows = bm.bench(base, degrees, cells, repeats=repeats, comm=comm, slabs=slabs,
+                    skipped=skipped)
+    for line in skipped:
+        print0(comm, f"fem-dual bench: left out {line}", file=sys.stderr)
     if comm.rank == 0:
         bm.write_csv(rows, out / "bench.csv")
         bm.plot(rows, out / "bench.png", f"{args.scene}, T = {base.T:g}")

@@ -288,7 +288,8 @@ def stress(names: Optional[Sequence[str]] = None, slow: bool = False,
 
 def table(rows: Sequence[Row]) -> str:
     def num(value, fmt):
-        return "-" if value is None else format(value, fmt)
+        width = int(fmt.split(".")[0].rstrip("de") or 0)
+        return "-".rjust(width) if value is None else format(value, fmt)
 
     head = (f"{'case':28s} {'status':8s} {'rel.err':>9s} {'time s':>8s} {'newton':>6s} "
             f"{'cond':>8s}  measured")
