@@ -70,6 +70,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--recovery", default="momentum", help="primal state at the vertices: "
                    "momentum (default, from the momenta of the dual Lagrangian, order 2p) or dtp "
                    "(the DtP map with one-sided derivatives, order p)")
+    r.add_argument("--assembly", default="auto", help="linear scenes: forms (UFL forms, LU), "
+                   "kronecker (time x space Kronecker sums, matrix-free CG with a "
+                   "fast-diagonalisation preconditioner), auto (default) = kronecker from 5 "
+                   "dofs")
     r.add_argument("--out", help="write XDMF output into this directory")
     r.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     r.add_argument("--petsc-option", action="append", default=[], metavar="KEY=VALUE",
@@ -262,7 +266,7 @@ def main(argv: Optional[Sequence[str]] = None, comm: MPI.Comm = MPI.COMM_WORLD) 
                                   degree=args.degree, slabs=args.slabs, x0=args.x0, v0=args.v0,
                                   out=args.out, petsc=petsc, max_halvings=args.max_halvings,
                                   superpose=args.superpose, staging=args.staging,
-                                  recovery=args.recovery)
+                                  recovery=args.recovery, assembly=args.assembly)
         result = run(config, comm, progress=not args.json and sys.stderr.isatty())
     except InputError as exc:
         print0(comm, f"fem-dual: error: {_one_line(exc)}", file=sys.stderr)

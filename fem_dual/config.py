@@ -24,6 +24,8 @@ MAX_DEGREE = 10  # equispaced Lagrange bases beyond this are too ill-conditioned
 # fewest equal sub-slabs that satisfy it; the total number of time cells stays the same.
 STAGING_LIMIT = 800
 STAGING = ("auto", "off")
+ASSEMBLY = ("auto", "forms", "kronecker")
+KRONECKER_MIN_DOFS = 5  # auto: linear scenes from this many dofs take the Kronecker path
 
 Number = Union[int, float, str]
 
@@ -58,6 +60,15 @@ class RunConfig:
     superpose: str = "auto"  # linear scenes: slabs by superposition (auto: when slabs > 2n)
     staging: str = "auto"  # auto: split slabs whose cells * degree^2 > STAGING_LIMIT
     recovery: str = "momentum"  # primal state from the momenta of L_d, or "dtp" (the DtP map)
+    assembly: str = "auto"  # linear scenes: UFL forms + LU, or Kronecker sums + CG
+
+    @property
+    def kronecker(self) -> bool:
+        """Whether the slabs are solved in Kronecker form (matrix-free CG)."""
+        if self.assembly != "auto":
+            return self.assembly == "kronecker"
+        return (self.scene.linear and self.scene.n >= KRONECKER_MIN_DOFS
+                and self.recovery == "momentum")
 
     @property
     def stages(self) -> int:
@@ -84,7 +95,7 @@ class RunConfig:
                out: Optional[Union[str, Path]] = None,
                petsc: Optional[Mapping[str, str]] = None,
                max_halvings: Number = 6, superpose: str = "auto", staging: str = "auto",
-               recovery: str = "momentum") -> "RunConfig":
+               recovery: str = "momentum", assembly: str = "auto") -> "RunConfig":
         """Validate every input; raises InputError naming the first bad value."""
         if isinstance(scene, str):
             scene = get_scene(scene).from_params(params)
@@ -121,6 +132,14 @@ class RunConfig:
             raise InputError(f"staging={staging!r} is not one of {', '.join(STAGING)}")
         if recovery not in RECOVERIES:
             raise InputError(f"recovery={recovery!r} is not one of {', '.join(RECOVERIES)}")
+        if assembly not in ASSEMBLY:
+            raise InputError(f"assembly={assembly!r} is not one of {', '.join(ASSEMBLY)}")
+        if assembly == "kronecker" and not scene.linear:
+            raise InputError(f"assembly=kronecker needs a linear scene ({scene.name} is "
+                             "nonlinear)")
+        if assembly == "kronecker" and recovery != "momentum":
+            raise InputError("assembly=kronecker recovers the motion from the momenta only "
+                             f"(recovery={recovery!r})")
         return cls(scene, T_value, cells_, degree_, slabs_, x0_, v0_,
                    None if out is None else Path(out), petsc_, halvings, superpose, staging,
-                   recovery)
+                   recovery, assembly)

@@ -19,6 +19,8 @@ from mpi4py import MPI
 from fem_dual.compat import quiet_jit_logging
 from fem_dual.config import STAGING_LIMIT, RunConfig
 from fem_dual.errors import InputError, SolveError
+from fem_dual.kronecker import (KroneckerProblem, KroneckerSampler, KroneckerSolver,
+                                KroneckerSuperposition)
 from fem_dual.mpi import bcast
 from fem_dual.output import OutputDir, check_output_dir, XdmfSeries, write_polyline
 from fem_dual.newton import NewtonSlabSolver
@@ -173,17 +175,25 @@ class Simulation:
     """
 
     def __init__(self, scene, degree: int, cells: int, comm: MPI.Comm = MPI.COMM_WORLD,
-                 petsc: Optional[Dict[str, str]] = None, recovery: str = "momentum"):
+                 petsc: Optional[Dict[str, str]] = None, recovery: str = "momentum",
+                 kronecker: bool = False):
         quiet_jit_logging()
         tic = time.perf_counter()
         self.scene, self.degree, self.cells, self.comm = scene, degree, cells, comm
-        self.problem = SlabProblem(scene, degree, cells, comm)
         self.prefix = solver_prefix(scene.name)
+        self.recovery, self.kronecker = recovery, kronecker
+        if kronecker:
+            self.problem = KroneckerProblem(scene, degree, cells, comm)
+            self.solver = KroneckerSolver(self.problem, self.prefix, petsc)
+            self.sampler = KroneckerSampler(self.problem)
+            self.setup_s = time.perf_counter() - tic
+            self._fresh = True
+            return
+        self.problem = SlabProblem(scene, degree, cells, comm)
         if scene.linear:
             self.solver = LinearSlabSolver(self.problem, self.prefix, petsc)
         else:
             self.solver = NewtonSlabSolver(self.problem, self.prefix, petsc)
-        self.recovery = recovery
         self.sampler = VertexSampler(self.problem, with_dual=True, recovery=recovery)
         self.setup_s = time.perf_counter() - tic
         self._fresh = True
@@ -197,13 +207,14 @@ class Simulation:
     def for_config(cls, config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD) -> "Simulation":
         """The simulation that runs `config` (its staged cells per slab)."""
         return cls(config.scene, config.degree, config.slab_cells, comm, config.petsc,
-                   config.recovery)
+                   config.recovery, config.kronecker)
 
     def run(self, config: RunConfig, progress: bool = False) -> RunResult:
         """Solve the dual problem slab by slab, recover the primal motion, compare with the
         reference (see `run`). The matrix is assembled and factored again in every run."""
-        if ((config.scene.name, config.degree, config.slab_cells, config.recovery)
-                != (self.scene.name, self.degree, self.cells, self.recovery)):
+        if ((config.scene.name, config.degree, config.slab_cells, config.recovery,
+             config.kronecker)
+                != (self.scene.name, self.degree, self.cells, self.recovery, self.kronecker)):
             raise ValueError("the configuration does not match the compiled simulation")
         if config.scene != self.scene:
             self.problem.set_scene_constants(config.scene)
@@ -225,13 +236,42 @@ def check_resolution(rate: Optional[float], dt: float, cells: int, degree: int) 
                          "degree")
 
 
+class GrowthBound:
+    """|z(t)| <= kappa(U) exp(sigma t) |z0| for z' = A z with A = U diag(lambda) U^-1: a linear
+    motion that outgrows this (by a factor 10) is noise amplified by the slab map in modes the
+    slabs do not resolve."""
+
+    def __init__(self, scene, x0: np.ndarray, v0: np.ndarray):
+        lam, U = np.linalg.eig(scene.first_order_matrix())
+        self.sigma = float(lam.real.max())
+        self.kappa = float(np.linalg.cond(U))
+        self.z0 = float(np.linalg.norm(np.concatenate([x0, v0])))
+
+    def allows(self, t: float, values: VertexValues) -> bool:
+        z = np.hypot(np.linalg.norm(values.x, axis=1), np.linalg.norm(values.v, axis=1)).max()
+        limit = 10 * self.kappa * np.exp(min(self.sigma * t, 700.0)) * self.z0
+        return not (z > limit + 1e-300) or not np.isfinite(self.kappa)
+
+
+def _insane(vals: VertexValues, bound: Optional[GrowthBound], t: float) -> Optional[str]:
+    """Why the slab's recovered state cannot be right, or None."""
+    if not vals.finite():
+        return "the recovered state is not finite; try more slabs or cells"
+    if bound is not None and not bound.allows(t, vals):
+        return ("the motion outgrows the exact flow's bound (noise amplified in modes the "
+                "slabs do not resolve); use more slabs or cells per slab")
+    return None
+
+
 def _run_slabs(sim: Simulation, config: RunConfig, progress: bool) -> RunResult:
     tic = time.perf_counter()
     comm, scene, problem, solver, sampler = (sim.comm, sim.scene, sim.problem, sim.solver,
                                              sim.sampler)
     root = comm.rank == 0
-    superposition = Superposition(problem, solver, sampler) if sim.uses_superposition(config) \
-        else None
+    superposition = None
+    if sim.uses_superposition(config):
+        kind = KroneckerSuperposition if sim.kronecker else Superposition
+        superposition = kind(problem, solver, sampler, config.T)
     acc = _Accumulator(config) if root else None
     outdir = OutputDir(config.out) if (root and config.out is not None) else None
     series: Optional[XdmfSeries] = None
@@ -244,7 +284,8 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool) -> RunResult:
     state = (config.x0, config.v0)
 
     halvings = 0 if scene.linear else config.max_halvings  # a linear solve does not diverge
-    rate = scene.fastest_rate() if scene.linear else None
+    rate = scene.fastest_rate(config.x0, config.v0) if scene.linear else None
+    bound = GrowthBound(scene, config.x0, config.v0) if (scene.linear and root) else None
     schedule = SlabSchedule(config.T, config.slab_count, halvings)
     bar = _progress_bar(config.T) if (progress and root) else None
     k = 0
@@ -261,8 +302,9 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool) -> RunResult:
                 solver.solve()
                 t2 = time.perf_counter()
                 vals = sampler()
-            if not bcast(comm, vals.finite() if root else None):
-                raise SolveError("the recovered state is not finite; try more slabs or cells")
+            problem_text = bcast(comm, _insane(vals, bound, t0 + dt) if root else None)
+            if problem_text:
+                raise SolveError(problem_text)
         except SolveError as exc:
             if schedule.halve():
                 retries.append({"t0": t0, "dt": dt, "reason": str(exc)})
@@ -313,6 +355,7 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool) -> RunResult:
         record["superposition"] = superposition is not None
         if scene.linear:
             record["weighting"] = scene.weighting()
+            record["assembly"] = "kronecker" if sim.kronecker else "forms"
         record["slab_solves"] = (superposition.basis_solves if superposition is not None
                                  else len(solver.iterations))
         result = RunResult(

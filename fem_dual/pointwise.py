@@ -27,7 +27,7 @@ from fem_dual.mpi import allreduce
 
 __all__ = ["PointwiseDtP", "BRANCH_TOL"]
 
-BRANCH_TOL = 1e-3  # lambda_min / lambda_max of G_x below this: leaving the branch of the base state
+BRANCH_TOL = 1e-3  # lambda_min / lambda_max of G_x below this: leaving the base state branch
 
 
 class PointwiseDtP:

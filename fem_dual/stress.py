@@ -92,7 +92,7 @@ def attempt(config: RunConfig, comm: MPI.Comm, condition: bool = True) -> Attemp
         failure, result = str(exc), exc.partial
     run_s = time.perf_counter() - tic
     cond = None
-    if condition and config.scene.linear and failure is None:
+    if condition and hasattr(sim.solver, "condition_estimate") and failure is None:
         cond = sim.solver.condition_estimate()
     return Attempt(config, result, failure, run_s, cond)
 

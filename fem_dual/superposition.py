@@ -16,10 +16,41 @@ from typing import Dict, Optional, Tuple
 
 import numpy as np
 
+from fem_dual.errors import SolveError
+from fem_dual.mpi import bcast
 from fem_dual.problem import SlabProblem
 from fem_dual.recovery import VertexSampler, VertexValues
 
-__all__ = ["Superposition"]
+__all__ = ["Superposition", "check_slab_map", "stable_or_raise"]
+
+SPURIOUS_GROWTH = 1e-3  # largest spurious amplification over the run (relative)
+
+
+def stable_or_raise(comm, scene, end_states: Optional[np.ndarray], dt: float, T: float) -> None:
+    """check_slab_map on rank 0 (which holds the end states), raised on every rank."""
+    message = None
+    if end_states is not None:
+        try:
+            check_slab_map(scene, end_states, dt, T / dt)
+        except SolveError as exc:
+            message = str(exc)
+    message = bcast(comm, message)
+    if message:
+        raise SolveError(message)
+
+
+def check_slab_map(scene, end_states: np.ndarray, dt: float, slabs: float) -> None:
+    """SolveError when the slab map Phi (columns: end states of the unit start states) grows
+    faster than the exact flow, exp(max Re lambda dt), by more than SPURIOUS_GROWTH over the
+    run: modes the slabs do not resolve are amplified (the dual slab map is stable only up to
+    some tens of radians of the fastest mode per cell), and noise would grow without bound."""
+    rho = float(np.abs(np.linalg.eigvals(end_states)).max())
+    sigma = float(np.linalg.eigvals(scene.first_order_matrix()).real.max())
+    excess = np.log(max(rho, 1e-300)) - sigma * dt
+    if excess * max(slabs, 1.0) > np.log1p(SPURIOUS_GROWTH):
+        raise SolveError(f"the slab map amplifies modes the slabs do not resolve (spectral "
+                         f"radius {rho:.6g}, exact {np.exp(sigma * dt):.6g} per slab); use more "
+                         "slabs or cells per slab")
 
 
 class Superposition:
@@ -31,8 +62,9 @@ class Superposition:
         sampler: the vertex sampler of the problem.
     """
 
-    def __init__(self, problem: SlabProblem, solver, sampler: VertexSampler):
+    def __init__(self, problem: SlabProblem, solver, sampler: VertexSampler, T: float = 0.0):
         self.problem, self.solver, self.sampler = problem, solver, sampler
+        self.T = T  # the run's horizon, for the stability check of the slab map
         self._bases: Dict[float, Tuple[Optional[np.ndarray], Optional[np.ndarray]]] = {}
         self.basis_solves = 0
 
@@ -72,6 +104,12 @@ class Superposition:
         Collective the first time a slab length is seen (its basis is solved then)."""
         if dt not in self._bases:
             self._bases[dt] = self._basis(dt)
+            linear = self._bases[dt][0]
+            ends = None
+            if linear is not None:
+                values = [self.sampler.average(rows) for rows in linear]
+                ends = np.array([np.concatenate([e.x[-1], e.v[-1]]) for e in values]).T
+            stable_or_raise(self.problem.comm, self.problem.scene, ends, dt, self.T)
         linear, quad = self._bases[dt]
         if linear is None:
             return None

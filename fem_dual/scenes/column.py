@@ -62,5 +62,10 @@ class Column(LinearScene):
         return (column_forms.joint_matrix(self._per_link("c"))
                 - column_forms.follower_matrix(self.n, self.l, self.P))
 
+    def energy_stiffness(self) -> np.ndarray:
+        """The springs alone: positive definite under any load (sym K is not, for long columns
+        under a follower load)."""
+        return column_forms.joint_matrix(self._per_link("c"))
+
     def damping_matrix(self) -> np.ndarray:
         return column_forms.joint_matrix(self._per_link("d"))

@@ -6,9 +6,10 @@ The weights (the conditioning rule, measured in the README, "Where to trust it")
 Euler-Lagrange system is balanced when A / B scales like K M, so that its zero- and first-order
 parts differ by the squared frequencies in both the xi and the eta block. Two choices satisfy it:
 "identity" (A = I, B = M^2: the principal part is the identity) for problems of one time scale,
-and "energy" (A = sym K, B = M: H is the energy of the deviation from the base state), which
-keeps every mode balanced when fast and slow modes coexist. "auto" picks energy when the
-frequencies of M^-1 K spread by more than STIFF_SPREAD and sym K is positive definite.
+and "energy" (A = sym K, or the springs of a column, B = M: H is the energy of the deviation from
+the base state), which keeps every mode balanced when fast and slow modes coexist. "auto" picks
+energy when the frequencies of M^-1 K spread by more than STIFF_SPREAD and that stiffness is
+positive definite.
 """
 from __future__ import annotations
 
@@ -53,18 +54,22 @@ class LinearScene(Scene):
                                                        self.stiffness_matrix())))
         return float(np.sqrt(lam.max() / lam.min())) if lam.min() > 0 else float("inf")
 
+    def energy_stiffness(self) -> np.ndarray:
+        """The stiffness of H's energy weights: sym K here; a scene with a conservative
+        elastic part (the column's springs) may give that instead."""
+        K = self.stiffness_matrix()
+        return 0.5 * (K + K.T)
+
     def weighting(self) -> str:
         """The weights in use: `weights`, with auto resolved by the conditioning rule."""
         if self.weights != "auto":
             return self.weights
-        K = self.stiffness_matrix()
-        energy = self.frequency_spread() > STIFF_SPREAD and is_spd(0.5 * (K + K.T))
+        energy = self.frequency_spread() > STIFF_SPREAD and is_spd(self.energy_stiffness())
         return "energy" if energy else "identity"
 
     def A_matrix(self) -> np.ndarray:
         if self.weighting() == "energy":
-            K = self.stiffness_matrix()
-            return self.matrix("A", 0.5 * (K + K.T))
+            return self.matrix("A", self.energy_stiffness())
         return self.matrix("A", np.eye(self.n))
 
     def B_matrix(self) -> np.ndarray:
@@ -73,10 +78,9 @@ class LinearScene(Scene):
 
     def validate(self) -> None:
         require_spd("M", self.mass_matrix())
-        K = self.stiffness_matrix()
-        if self.weights == "energy" and self.A is None and not is_spd(0.5 * (K + K.T)):
-            raise InputError("weights=energy needs sym(K) positive definite (it is A); "
-                             "use weights=identity or give A")
+        if self.weights == "energy" and self.A is None and not is_spd(self.energy_stiffness()):
+            raise InputError("weights=energy needs a positive definite energy stiffness (sym K, "
+                             "the springs of a column); use weights=identity or give A")
         require_spd("A", self.A_matrix())
         require_spd("B", self.B_matrix())
 
@@ -89,10 +93,17 @@ class LinearScene(Scene):
         return first_order_matrix(self.mass_matrix(), self.stiffness_matrix(),
                                   self.damping_matrix())
 
-    def fastest_rate(self) -> float:
+    def fastest_rate(self, x0=None, v0=None) -> float:
         """max |lambda| over the eigenvalues of the first-order system (radians per unit time,
-        growth and decay included)."""
-        return float(np.abs(np.linalg.eigvals(self.first_order_matrix())).max())
+        growth and decay included); given a start state, over the modes it excites (modal
+        amplitude above 1e-6 of the state)."""
+        lam, U = np.linalg.eig(self.first_order_matrix())
+        if x0 is None:
+            return float(np.abs(lam).max())
+        z0 = np.concatenate([x0, v0])
+        amplitude = np.abs(np.linalg.lstsq(U, z0, rcond=None)[0]) * np.linalg.norm(U, axis=0)
+        excited = amplitude > 1e-6 * max(np.linalg.norm(z0), 1e-300)
+        return float(np.abs(lam[excited]).max()) if excited.any() else 0.0
 
     def reference(self, x0, v0) -> LinearFlow:
         return LinearFlow(self.first_order_matrix(), x0, v0)

@@ -1,0 +1,388 @@
+"""Linear scenes of many degrees of freedom: the slab problem as Kronecker sums (time x space),
+applied matrix-free and solved by CG with a fast-diagonalisation preconditioner.
+
+For M q'' + D q' + K q = 0 the dual unknowns are W_xi, W_eta (time dofs x n). With
+a = K^T eta - xi', b = D^T eta - M eta' - xi, the DtP map is x^ = xbar + A^-1 a, v^ = vbar + B^-1 b
+and, by stationarity, the first variation of the action is
+
+    dS[dw] = int (da . x^ + db . v^) dt - x0 . dxi(0) - M v0 . deta(0),
+
+a sum of products (1D time matrix) x (n x n coefficient matrix). The 1D matrices of one slab (on
+s in [0, 1], dofs ordered by s, so banded) are S = int phi_i' phi_j', C = int phi_i' phi_j,
+G = C^T, Mm = int phi_i phi_j, e = int phi_i', m = int phi_i; the same formula with the element
+matrices of one cell gives the cell residuals that carry the momenta x^, M v^ at the cell ends
+(the superconvergent recovery of fem_dual.recovery). Nothing is compiled per n: this is the path
+for columns of hundreds of links, where the forms path would unroll n x n constants in FFCx.
+
+The action is convex: CG, preconditioned by the exact inverse of the symmetric, undamped,
+energy-weighted slab problem, which decouples into the modes of the pencil (Ke, M), Ke the
+scene's energy stiffness: n independent banded 1D solves. Under MPI each rank owns a share of the n components: it
+computes its columns of every product and the modes of its columns; the vectors (time dofs x 2n,
+small) are all-gathered once per product.
+"""
+from __future__ import annotations
+
+import weakref
+from typing import Dict, List, Mapping, Optional, Tuple
+
+import basix
+import numpy as np
+import scipy.linalg as sla
+from mpi4py import MPI
+from petsc4py import PETSc
+from scipy import sparse
+
+from fem_dual.errors import SolveError
+from fem_dual.recovery import VertexValues
+from fem_dual.superposition import stable_or_raise
+
+__all__ = ["TimeMatrices", "KroneckerProblem", "KroneckerSolver", "KroneckerSampler",
+           "KroneckerSuperposition", "KRONECKER_DEFAULTS"]
+
+KRONECKER_DEFAULTS: Dict[str, str] = {"ksp_type": "cg", "ksp_rtol": "1e-13", "ksp_atol": "1e-300",
+                                      "ksp_max_it": "2000"}
+
+
+class TimeMatrices:
+    """1D P_p matrices of the unit interval with `cells` equal cells, dofs ordered by s."""
+
+    def __init__(self, degree: int, cells: int):
+        p = degree
+        element = basix.create_element(basix.ElementFamily.P, basix.CellType.interval, p,
+                                       basix.LagrangeVariant.gll_warped)
+        points, weights = basix.make_quadrature(basix.CellType.interval, 2 * p)
+        tab = element.tabulate(1, points)
+        phi, dphi = tab[0, :, :, 0], tab[1, :, :, 0]  # (points, p + 1)
+        position = np.array([0, p] + list(range(1, p)))  # basix dof -> position in the cell
+        order = np.argsort(position)  # local dofs sorted by s
+        phi, dphi = phi[:, order], dphi[:, order]
+        h = 1.0 / cells
+        self.element = {  # per cell, in s-order, for a cell of length h
+            "S": (dphi.T * weights) @ dphi / h, "C": (dphi.T * weights) @ phi,
+            "Mm": (phi.T * weights) @ phi * h, "e": dphi.T @ weights,
+            "m": phi.T @ weights * h}
+        self.element["G"] = self.element["C"].T
+        self.cells, self.degree = cells, p
+        self.size = cells * p + 1
+        self.cell_dofs = np.arange(cells)[:, None] * p + np.arange(p + 1)  # (cells, p + 1)
+        rows = np.repeat(self.cell_dofs, p + 1, axis=1).ravel()
+        cols = np.tile(self.cell_dofs, (1, p + 1)).ravel()
+        self.glob = {}
+        for name in ("S", "C", "G", "Mm"):
+            values = np.tile(self.element[name].ravel(), cells)
+            self.glob[name] = sparse.csr_matrix((values, (rows, cols)),
+                                                shape=(self.size, self.size))
+        for name in ("e", "m"):
+            vec = np.zeros(self.size)
+            np.add.at(vec, self.cell_dofs.ravel(), np.tile(self.element[name], cells))
+            self.glob[name] = vec
+        self.free = np.arange(self.size - 1)  # s = 1 is the Dirichlet dof xi = eta = 0
+
+
+class KroneckerProblem:
+    """The slab problem of a linear scene in Kronecker form (see the module docstring).
+
+    Attributes mirror SlabProblem where the driver uses them: set_slab, num_dofs, n, comm,
+    mesh.cells, degree.
+    """
+
+    class _Mesh:
+        def __init__(self, cells: int):
+            self.cells = cells
+
+    def __init__(self, scene, degree: int, cells: int, comm: MPI.Comm = MPI.COMM_WORLD):
+        self.scene, self.degree, self.comm = scene, degree, comm
+        self.n = n = scene.n
+        self.mesh = self._Mesh(cells)
+        self.time = TimeMatrices(degree, cells)
+        size = self.time.size
+        self.free = self.time.free
+        self.nf = len(self.free)
+        self.S = {k: (v[self.free][:, self.free] if k not in ("e", "m") else v[self.free])
+                  for k, v in self.time.glob.items()}
+        counts = [n // comm.size + (1 if r < n % comm.size else 0) for r in range(comm.size)]
+        self.offsets = np.concatenate([[0], np.cumsum(counts)])
+        self.mine = np.arange(self.offsets[comm.rank], self.offsets[comm.rank + 1])
+        self.set_scene_constants(scene)
+        self.dt, self.t0 = 1.0, 0.0
+        self.x0 = self.v0 = np.zeros(n)
+        self.W = np.zeros((size, 2 * n))  # the whole dual state (xi | eta), on every rank
+
+    def set_scene_constants(self, scene) -> None:
+        c = scene.constants()
+        M, K, D, A, B = (np.asarray(c[k], float) for k in ("M", "K", "D", "A", "B"))
+        Ai, Bi = c["Ainv"], c["Binv"]
+        self.scene = scene
+        self.c = {"M": M, "K": K, "D": D, "A": A, "B": B, "Ai": Ai, "Bi": Bi,
+                  "Ke": scene.energy_stiffness(),
+                  "AiKt": Ai @ K.T, "BiDt": Bi @ D.T, "BiM": Bi @ M, "KAi": K @ Ai,
+                  "KAiKt": K @ Ai @ K.T, "DBi": D @ Bi, "DBiDt": D @ Bi @ D.T,
+                  "DBiM": D @ Bi @ M, "MBi": M @ Bi, "MBiDt": M @ Bi @ D.T,
+                  "MBiM": M @ Bi @ M}
+
+    @property
+    def num_dofs(self) -> int:
+        return self.time.size * 2 * self.n
+
+    def set_slab(self, x0: np.ndarray, v0: np.ndarray, dt: float, t0: float = 0.0) -> None:
+        self.x0, self.v0 = np.asarray(x0, float), np.asarray(v0, float)
+        self.dt, self.t0 = float(dt), float(t0)
+        self.W[:] = 0.0
+
+    def residual(self, T: Mapping, Wxi, Weta, affine: bool, cols: Optional[np.ndarray] = None,
+                 apply=None) -> Tuple[np.ndarray, np.ndarray]:
+        """dS for the trial values (Wxi, Weta) tested with the rows of the time matrices T
+        (global or per cell); `affine` adds the base-state terms; only the output components
+        `cols` (default all). `apply(X, W)` multiplies a time matrix with W."""
+        c, dt = self.c, self.dt
+        cols = slice(None) if cols is None else cols
+        apply = apply or (lambda X, W: X @ W)
+
+        def right(X, W, name):
+            return apply(T[X], W) @ c[name].T[:, cols]
+
+        r_xi = (-right("C", Weta, "AiKt") + right("S", Wxi, "Ai") / dt
+                - dt * right("Mm", Weta, "BiDt") + dt * right("Mm", Wxi, "Bi")
+                + right("G", Weta, "BiM"))
+        r_eta = (dt * right("Mm", Weta, "KAiKt") - right("G", Wxi, "KAi")
+                 + dt * right("Mm", Weta, "DBiDt") - dt * right("Mm", Wxi, "DBi")
+                 - right("G", Weta, "DBiM") - right("C", Weta, "MBiDt")
+                 + right("C", Wxi, "MBi") + right("S", Weta, "MBiM") / dt)
+        if affine:
+            xbar, vbar = self.x0, self.v0
+            e, m = T["e"], T["m"]
+            r_xi = r_xi - np.multiply.outer(e, xbar[cols]) - dt * np.multiply.outer(m, vbar[cols])
+            r_eta = (r_eta + dt * np.multiply.outer(m, (c["K"] @ xbar + c["D"] @ vbar)[cols])
+                     - np.multiply.outer(e, (c["M"] @ vbar)[cols]))
+        return r_xi, r_eta
+
+
+class KroneckerSolver:
+    """CG on the slab's dual action (matrix-free), fast-diagonalisation preconditioner."""
+
+    def __init__(self, problem: KroneckerProblem, prefix: str,
+                 overrides: Optional[Mapping[str, str]] = None):
+        from fem_dual.solvers import petsc_options
+
+        self.problem = p = problem
+        comm = p.comm
+        local = p.nf * 2 * len(p.mine)
+        size = p.nf * 2 * p.n
+        self.A = PETSc.Mat().createPython([(local, size), (local, size)], _Operator(p), comm=comm)
+        self.A.setUp()
+        self.ksp = PETSc.KSP().create(comm)
+        self.ksp.setOperators(self.A)
+        self.ksp.setOptionsPrefix(prefix)
+        user_pc = "pc_type" in (overrides or {}) or PETSc.Options().hasName(prefix + "pc_type")
+        with petsc_options(prefix, KRONECKER_DEFAULTS, overrides):
+            self.ksp.setFromOptions()
+        self._pc: Optional[_FastDiagonalisation] = None
+        if not user_pc:  # a matrix-free operator: our preconditioner unless one is asked for
+            pc = self.ksp.getPC()
+            pc.setType(PETSc.PC.Type.PYTHON)
+            self._pc = _FastDiagonalisation(p)
+            pc.setPythonContext(self._pc)
+        self.x, self.b = self.A.createVecs()
+        # PETSc objects with Python contexts must go before PETSc finalises (at exit too)
+        weakref.finalize(self, _destroy, self.ksp, self.A, self.x, self.b)
+        self.iterations: List[int] = []
+        self._dt: Optional[float] = None
+
+    def reset(self) -> None:
+        self.iterations = []
+        self._dt = None
+
+    def solve(self) -> None:
+        p = self.problem
+        if self._dt != p.dt:
+            if self._pc is not None:
+                self._pc.setup_dt(p.dt)
+            self._dt = p.dt
+        zero = np.zeros((p.nf, p.n))
+        r_xi, r_eta = p.residual(p.S, zero, zero, affine=True, cols=p.mine)
+        r_xi[0] -= p.x0[p.mine]  # the initial conditions, natural at s = 0
+        r_eta[0] -= (p.c["M"] @ p.v0)[p.mine]
+        self.b.array[:] = -_pack(r_xi, r_eta)
+        self.x.set(0.0)
+        self.ksp.solve(self.b, self.x)
+        reason = self.ksp.getConvergedReason()
+        if reason < 0:
+            raise SolveError(f"CG did not converge (KSP reason {reason}, "
+                             f"{self.ksp.getIterationNumber()} iterations)")
+        self.iterations.append(self.ksp.getIterationNumber())
+        p.W[p.free] = _gather(p, self.x.array_r)
+
+
+def _destroy(*objects) -> None:
+    for obj in objects:
+        obj.destroy()
+
+
+def _pack(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.concatenate([a, b], axis=1).ravel()
+
+
+def _gather(p: KroneckerProblem, local: np.ndarray) -> np.ndarray:
+    """The whole (free time dofs x 2n) array from every rank's (free x 2 x own) block."""
+    parts = p.comm.allgather(np.asarray(local).reshape(p.nf, 2, -1))
+    xi = np.concatenate([q[:, 0] for q in parts], axis=1)
+    eta = np.concatenate([q[:, 1] for q in parts], axis=1)
+    return np.concatenate([xi, eta], axis=1)
+
+
+class _Operator:
+    """The Hessian of the slab's action, applied matrix-free (PETSc MATPYTHON context)."""
+
+    def __init__(self, problem: KroneckerProblem):
+        self.p = problem
+
+    def mult(self, mat, x, y) -> None:
+        p = self.p
+        W = _gather(p, x.array_r)
+        r_xi, r_eta = p.residual(p.S, W[:, :p.n], W[:, p.n:], affine=False, cols=p.mine)
+        y.array[:] = _pack(r_xi, r_eta)
+
+
+class _FastDiagonalisation:
+    """Exact inverse of the slab Hessian of the symmetric, undamped, energy-weighted problem
+    (K -> Ke, D -> 0, A = Ke, B = M, with Ke the scene's energy stiffness: sym K, or a column's
+    springs), which decouples into the modes of the pencil (Ke, M): with Phi^T M Phi = I,
+    Phi^T Ke Phi = Omega^2, z_xi = Phi^T xi, z_eta = Phi^-1 eta,
+    each mode is one symmetric 2 x 2-block banded 1D system
+
+        [ S / (dt w^2) + dt Mm      G - C           ] [z_xi ]   [r_xi ]
+        [ C - G                     dt w^2 Mm + S / dt ] [z_eta] = [r_eta].
+
+    For the scene's own problem (non-symmetric K, damping, other weights) it is a preconditioner
+    for CG (PETSc PCPYTHON context)."""
+
+    def __init__(self, problem: KroneckerProblem):
+        self.p = problem
+
+    def setup_dt(self, dt: float) -> None:
+        p, c = self.p, self.p.c
+        w2, Phi = sla.eigh(c["Ke"], c["M"])
+        w2 = np.maximum(np.abs(w2), 1e-12 * np.abs(w2).max())  # near flutter: stay SPD
+        self.Phi, self.Phi_inv = Phi, np.linalg.inv(Phi)
+        S, Mm = p.S["S"].toarray(), p.S["Mm"].toarray()
+        skew = p.S["G"].toarray() - p.S["C"].toarray()
+        nf, pd = p.nf, p.degree
+        self.factors = []
+        for k in p.mine:
+            block = np.zeros((2 * nf, 2 * nf))  # interleaved (xi_i, eta_i)
+            block[0::2, 0::2] = S / (dt * w2[k]) + dt * Mm
+            block[0::2, 1::2] = skew
+            block[1::2, 0::2] = skew.T
+            block[1::2, 1::2] = dt * w2[k] * Mm + S / dt
+            self.factors.append(sla.cholesky_banded(_banded(block, 2 * pd + 1), lower=False))
+
+    def apply(self, pc, x, y) -> None:
+        p = self.p
+        R = _gather(p, x.array_r)
+        r_xi = R[:, :p.n] @ self.Phi_inv.T[:, p.mine]  # R_xi Phi^-T
+        r_eta = R[:, p.n:] @ self.Phi[:, p.mine]  # R_eta Phi
+        z_xi = np.empty_like(r_xi)
+        z_eta = np.empty_like(r_eta)
+        rhs = np.empty(2 * p.nf)
+        for i, factor in enumerate(self.factors):
+            rhs[0::2], rhs[1::2] = r_xi[:, i], r_eta[:, i]
+            z = sla.cho_solve_banded((factor, False), rhs)
+            z_xi[:, i], z_eta[:, i] = z[0::2], z[1::2]
+        Z_xi, Z_eta = _allgather_columns(p, z_xi), _allgather_columns(p, z_eta)
+        y.array[:] = _pack(Z_xi @ self.Phi_inv[:, p.mine], Z_eta @ self.Phi.T[:, p.mine])
+
+
+def _allgather_columns(p: KroneckerProblem, local: np.ndarray) -> np.ndarray:
+    return np.concatenate(p.comm.allgather(local), axis=1)
+
+
+def _banded(matrix: np.ndarray, bandwidth: int) -> np.ndarray:
+    """Upper banded storage of a symmetric matrix for scipy's cholesky_banded."""
+    n = matrix.shape[0]
+    band = np.zeros((bandwidth + 1, n))
+    for d in range(bandwidth + 1):
+        band[bandwidth - d, d:] = np.diagonal(matrix, d)
+    return band
+
+
+class KroneckerSampler:
+    """Vertex values of the current dual state: momenta of the cell residuals (order 2p), the
+    dual Hamiltonian from them and the nodal duals. Rank 0 returns them, the others None."""
+
+    def __init__(self, problem: KroneckerProblem, with_dual: bool = True):
+        self.p = problem
+        self.with_dual = with_dual
+        self.s = np.linspace(0.0, 1.0, problem.time.cells + 1)
+
+    def __call__(self) -> Optional[VertexValues]:
+        if self.p.comm.rank != 0:
+            return None
+        return self.values(self.linear_part(), self.p.x0, self.p.v0)
+
+    def linear_part(self) -> np.ndarray:
+        """(vertices, 4n): x, v, xi, eta at the vertices, linear in the slab's start state."""
+        p, t = self.p, self.p.time
+        n, c = p.n, p.c
+        Wc = p.W[t.cell_dofs]  # (cells, p + 1, 2n)
+
+        def apply(X, W):  # an element matrix on every cell's (p + 1, n) block
+            return np.einsum("ij,cjk->cik", X, W)
+
+        r_xi, r_eta = p.residual(t.element, Wc[..., :n], Wc[..., n:], affine=True, apply=apply)
+        x = np.empty((t.cells + 1, n))
+        mv = np.empty((t.cells + 1, n))
+        x[:-1], mv[:-1] = r_xi[:, 0], r_eta[:, 0]  # left ends of the cells: +r
+        right_x, right_mv = -r_xi[:, -1], -r_eta[:, -1]  # right ends: -r
+        x[1:-1] = 0.5 * (x[1:-1] + right_x[:-1])
+        mv[1:-1] = 0.5 * (mv[1:-1] + right_mv[:-1])
+        x[-1], mv[-1] = right_x[-1], right_mv[-1]
+        v = np.linalg.solve(c["M"], mv.T).T
+        return np.hstack([x, v, p.W[::t.degree]])
+
+    def values(self, linear: np.ndarray, xbar: np.ndarray, vbar: np.ndarray) -> VertexValues:
+        """VertexValues from the linear part, with H_d = xi.v + eta.F(x) - eta.D v
+        + H(x - xbar, v - vbar)."""
+        n, c = self.p.n, self.p.c
+        x, v, xi, eta = (linear[:, k * n:(k + 1) * n] for k in range(4))
+        dx, dv = x - xbar, v - vbar
+        ham = (np.einsum("ij,ij->i", xi, v) - np.einsum("ij,ij->i", eta, x @ c["K"].T)
+               - np.einsum("ij,ij->i", eta, v @ c["D"].T)
+               + 0.5 * np.einsum("ij,ij->i", dx, dx @ c["A"])
+               + 0.5 * np.einsum("ij,ij->i", dv, dv @ c["B"]))
+        values = VertexValues(s=self.s, x=x, v=v, hamiltonian=ham)
+        if self.with_dual:
+            values.xi, values.eta = xi, eta
+        return values
+
+
+class KroneckerSuperposition:
+    """Slabs of a Kronecker problem from its 2n unit start states (see fem_dual.superposition):
+    x, v, xi, eta at the vertices are linear in z = (x0, v0), H_d follows from them."""
+
+    def __init__(self, problem: KroneckerProblem, solver: KroneckerSolver,
+                 sampler: KroneckerSampler, T: float = 0.0):
+        self.problem, self.solver, self.sampler = problem, solver, sampler
+        self.T = T
+        self._bases: Dict[float, Optional[np.ndarray]] = {}
+        self.basis_solves = 0
+
+    def __call__(self, x0: np.ndarray, v0: np.ndarray, dt: float) -> Optional[VertexValues]:
+        p, n = self.problem, self.problem.n
+        if dt not in self._bases:
+            basis = []
+            for z in np.eye(2 * n):
+                p.set_slab(z[:n], z[n:], dt)
+                self.solver.solve()
+                self.basis_solves += 1
+                if p.comm.rank == 0:
+                    basis.append(self.sampler.linear_part())
+            self._bases[dt] = np.stack(basis) if basis else None
+            ends = None
+            if basis:  # the slab map: end states (x, v) of the unit start states
+                ends = self._bases[dt][:, -1, :2 * n].T
+            stable_or_raise(p.comm, p.scene, ends, dt, self.T)
+        basis = self._bases[dt]
+        if basis is None:
+            return None
+        linear = np.tensordot(np.concatenate([x0, v0]), basis, axes=1)
+        return self.sampler.values(linear, x0, v0)
