@@ -113,14 +113,22 @@ class VertexSampler:
         n = problem.n
         msh = problem.mesh.msh
         ends = np.array([0.0, 1.0])
+        cells = msh.topology.index_map(1).size_local
         self.vertex_dtp: Optional[PointwiseDtP] = None
-        xhat, hamiltonian = problem.xhat, problem.hamiltonian
-        if problem.pointwise is not None:  # implicit DtP: solve G = 0 at the cell ends (DG1 nodes)
+        self._state: Optional[tuple] = None  # DG1 functions holding the recovered x, v
+        xhat, vhat, hamiltonian = problem.xhat, problem.vhat, problem.hamiltonian
+        if self.momenta is not None and problem.extra is None:
+            # H_d of the recovered state and the nodal duals: as accurate as the state
+            space = vector_space_dg1(msh, n)
+            xhat, vhat = fem.Function(space), fem.Function(space)
+            self._state = (xhat, vhat, space.dofmap.list.array.reshape(-1, 2)[:cells])
+            hamiltonian = problem.hamiltonian_of(xhat, vhat)
+        elif problem.pointwise is not None:  # implicit DtP: solve G = 0 at the cell ends
             space = vector_space_dg1(msh, n)
             self.vertex_dtp = PointwiseDtP(space, ends, problem.position_equations, problem.time)
             xhat = self.vertex_dtp.X
-            hamiltonian = problem.hamiltonian_of(xhat, problem.vhat)
-        parts = [ufl.SpatialCoordinate(msh)[0], *xhat, *problem.vhat, hamiltonian]
+            hamiltonian = problem.hamiltonian_of(xhat, vhat)
+        parts = [ufl.SpatialCoordinate(msh)[0], *xhat, *vhat, hamiltonian]
         if with_dual:
             parts += [*problem.xi, *problem.eta]
         self._eval = CellPointEvaluator(ufl.as_vector(parts), ends)
@@ -145,13 +153,22 @@ class VertexSampler:
             message = self.vertex_dtp.solve(self.problem.comm)
             if message:
                 raise SolveError(message)
-        local = self._eval(self._cells).reshape(-1, self._eval.value_size)
-        if self.momenta is not None:
+        if self._state is not None:  # x, v from the momenta into DG1, then evaluate
             n = self._n
-            momenta = self.momenta().reshape(-1, 2 * n)
-            local[:, 1:1 + n] = momenta[:, :n]
-            local[:, 1 + n:1 + 2 * n] = np.linalg.solve(self.problem.c["M"].value,
-                                                        momenta[:, n:].T).T
+            momenta = self.momenta()  # (cells, end, 2n)
+            X, V, dofs = self._state
+            X.x.array.reshape(-1, n)[dofs] = momenta[..., :n]
+            V.x.array.reshape(-1, n)[dofs] = np.linalg.solve(self.problem.c["M"].value,
+                                                             momenta[..., n:, None])[..., 0]
+            local = self._eval(self._cells).reshape(-1, self._eval.value_size)
+        else:
+            local = self._eval(self._cells).reshape(-1, self._eval.value_size)
+            if self.momenta is not None:  # a lifted scene: H_d through its own Legendre map
+                n = self._n
+                momenta = self.momenta().reshape(-1, 2 * n)
+                local[:, 1:1 + n] = momenta[:, :n]
+                local[:, 1 + n:1 + 2 * n] = np.linalg.solve(self.problem.c["M"].value,
+                                                            momenta[:, n:].T).T
         return gather_rows(self.problem.comm, local)
 
     def average(self, rows: np.ndarray) -> VertexValues:
