@@ -165,7 +165,7 @@ def _int_list(name: str, text: str) -> List[int]:
 
 def _bench(args, params, comm: MPI.Comm) -> int:
     from fem_dual import bench as bm
-    from fem_dual.output import check_output_dir
+    from fem_dual.output import check_output_dir_on_root
 
     slabs = _int_list("slabs", args.slabs)
     base = RunConfig.create(args.scene, params, T=args.T, slabs=slabs[0], x0=args.x0,
@@ -179,9 +179,7 @@ def _bench(args, params, comm: MPI.Comm) -> int:
         for n in cells:
             for k in slabs:
                 RunConfig.create(base.scene, T=base.T, cells=n, degree=degree, slabs=k)
-    out = None
-    if comm.rank == 0:
-        out = check_output_dir(args.out)
+    out = check_output_dir_on_root(comm, args.out)
     skipped: List[str] = []
     rows = bm.bench(base, degrees, cells, repeats=repeats, comm=comm, slabs=slabs,
                     skipped=skipped)

@@ -18,11 +18,11 @@ from mpi4py import MPI
 
 from fem_dual.compat import quiet_jit_logging
 from fem_dual.config import STAGING_LIMIT, RunConfig
-from fem_dual.errors import InputError, SolveError
+from fem_dual.errors import SolveError
 from fem_dual.kronecker import (KroneckerProblem, KroneckerSampler, KroneckerSolver,
                                 KroneckerSuperposition)
 from fem_dual.mpi import bcast
-from fem_dual.output import OutputDir, check_output_dir, XdmfSeries, write_polyline
+from fem_dual.output import OutputDir, check_output_dir_on_root, XdmfSeries, write_polyline
 from fem_dual.newton import NewtonSlabSolver
 from fem_dual.problem import SlabProblem
 from fem_dual.recovery import VertexSampler, VertexValues
@@ -389,13 +389,5 @@ def run(config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD, progress: bool = Fal
     """
     quiet_jit_logging()
     if config.out is not None:  # before any work: a bad --out is bad input, on every rank
-        problem_text = None
-        if comm.rank == 0:
-            try:
-                check_output_dir(config.out)
-            except InputError as exc:
-                problem_text = str(exc)
-        problem_text = bcast(comm, problem_text)
-        if problem_text:
-            raise InputError(problem_text)
+        check_output_dir_on_root(comm, config.out)
     return Simulation.for_config(config, comm).run(config, progress)

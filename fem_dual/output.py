@@ -15,13 +15,14 @@ import os
 import shutil
 import tempfile
 from pathlib import Path
-from typing import Dict, List
+from typing import Dict, List, Optional
 
 import numpy as np
 
 from fem_dual.errors import InputError
 
-__all__ = ["OutputDir", "XdmfSeries", "write_polyline", "check_output_dir"]
+__all__ = ["OutputDir", "XdmfSeries", "write_polyline", "check_output_dir",
+           "check_output_dir_on_root"]
 
 
 def check_output_dir(path: "str | os.PathLike") -> Path:
@@ -34,6 +35,23 @@ def check_output_dir(path: "str | os.PathLike") -> Path:
     except OSError as exc:
         raise InputError(f"--out {str(path)!r} is not a writable directory "
                          f"({exc.strerror or exc})") from None
+    return out
+
+
+def check_output_dir_on_root(comm, path: "str | os.PathLike") -> Optional[Path]:
+    """check_output_dir on rank 0 (which writes), its InputError raised on every rank, so no rank
+    goes on into collective work alone. The directory on rank 0, None elsewhere."""
+    from fem_dual.mpi import bcast
+
+    out, problem = None, None
+    if comm.rank == 0:
+        try:
+            out = check_output_dir(path)
+        except InputError as exc:
+            problem = str(exc)
+    problem = bcast(comm, problem)
+    if problem:
+        raise InputError(problem)
     return out
 
 

@@ -164,3 +164,17 @@ def test_python_api_raises_input_error_or_accepts(key, value):
     assert 1 <= config.cells and 1 <= config.degree <= MAX_DEGREE and 1 <= config.slabs
     assert config.cells * config.slabs <= MAX_VERTICES
     assert all(math.isfinite(v) for v in [*config.x0, *config.v0])
+
+
+@SETTINGS
+@given(tail=st.lists(st.text(alphabet=string.ascii_letters + "._-", min_size=1, max_size=8),
+                     min_size=1, max_size=3), command=st.sampled_from(["run", "bench"]))
+def test_unwritable_out_anywhere_below_a_file(tail, command, tmp_path, capsys):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("keep me")
+    out = blocker.joinpath(*tail)
+    capsys.readouterr()
+    assert main([command, "ziegler", "--cells", "4", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("fem-dual: error: --out") and err.count("\n") == 1, err
+    assert blocker.read_text() == "keep me"
