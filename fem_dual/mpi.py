@@ -36,5 +36,8 @@ def gather_rows(comm: MPI.Comm, rows: np.ndarray) -> "np.ndarray | None":
 
 
 def bcast(comm: MPI.Comm, obj: Any) -> Any:
-    """Broadcast from rank 0."""
+    """Broadcast from rank 0 (on one rank the object itself: mpi4py would pickle a copy, which
+    for the result of a long run is its whole vertex arrays once more)."""
+    if comm.size == 1:
+        return obj
     return comm.bcast(obj, root=0)
