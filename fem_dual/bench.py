@@ -20,7 +20,7 @@ from mpi4py import MPI
 from scipy.integrate import solve_ivp
 
 from fem_dual.config import RunConfig
-from fem_dual.driver import Simulation, check_resolution
+from fem_dual.driver import Simulation
 from fem_dual.errors import SolveError
 from fem_dual.scenes import Scene
 
@@ -40,7 +40,6 @@ def _fem_rows(base: RunConfig, degrees: Sequence[int], cells: Sequence[int],
               slabs: Sequence[int], repeats: int, comm: MPI.Comm,
               skipped: Optional[List[str]] = None) -> List[Dict]:
     rows = []
-    rate = base.scene.fastest_rate(base.x0, base.v0) if base.scene.linear else None
     for degree in degrees:
         for n in cells:
             sim = Simulation(base.scene, degree, n, comm)  # compiled once per degree and cells
@@ -50,7 +49,6 @@ def _fem_rows(base: RunConfig, degrees: Sequence[int], cells: Sequence[int],
                                           slabs=k, x0=base.x0, v0=base.v0, staging="off")
                 walls, result = [], None
                 try:  # under-resolved or unstable configurations are left out, and said so
-                    check_resolution(rate, base.T / k, n, degree)
                     sim.run(config)  # warms the caches
                 except SolveError as exc:
                     if skipped is not None:

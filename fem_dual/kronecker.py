@@ -16,9 +16,9 @@ for columns of hundreds of links, where the forms path would unroll n x n consta
 
 The action is convex: CG, preconditioned by the exact inverse of the symmetric, undamped,
 energy-weighted slab problem, which decouples into the modes of the pencil (Ke, M), Ke the
-scene's energy stiffness: n independent banded 1D solves. Under MPI each rank owns a share of the n components: it
-computes its columns of every product and the modes of its columns; the vectors (time dofs x 2n,
-small) are all-gathered once per product.
+scene's energy stiffness: n independent banded 1D solves. Under MPI each rank owns a share of
+the n components: it computes its columns of every product and the modes of its columns; the
+vectors (time dofs x 2n, small) are all-gathered once per product.
 """
 from __future__ import annotations
 
@@ -98,8 +98,8 @@ class KroneckerProblem:
         size = self.time.size
         self.free = self.time.free
         self.nf = len(self.free)
-        self.S = {k: (v[self.free][:, self.free] if k not in ("e", "m") else v[self.free])
-                  for k, v in self.time.glob.items()}
+        self.time_free = {k: (v[self.free][:, self.free] if k not in ("e", "m")
+                              else v[self.free]) for k, v in self.time.glob.items()}
         counts = [n // comm.size + (1 if r < n % comm.size else 0) for r in range(comm.size)]
         self.offsets = np.concatenate([[0], np.cumsum(counts)])
         self.mine = np.arange(self.offsets[comm.rank], self.offsets[comm.rank + 1])
@@ -149,12 +149,19 @@ class KroneckerProblem:
                  - right("G", Weta, "DBiM") - right("C", Weta, "MBiDt")
                  + right("C", Wxi, "MBi") + right("S", Weta, "MBiM") / dt)
         if affine:
-            xbar, vbar = self.x0, self.v0
-            e, m = T["e"], T["m"]
-            r_xi = r_xi - np.multiply.outer(e, xbar[cols]) - dt * np.multiply.outer(m, vbar[cols])
-            r_eta = (r_eta + dt * np.multiply.outer(m, (c["K"] @ xbar + c["D"] @ vbar)[cols])
-                     - np.multiply.outer(e, (c["M"] @ vbar)[cols]))
+            b_xi, b_eta = self.base_terms(T, cols)
+            r_xi, r_eta = r_xi + b_xi, r_eta + b_eta
         return r_xi, r_eta
+
+    def base_terms(self, T: Mapping, cols=slice(None)) -> Tuple[np.ndarray, np.ndarray]:
+        """The part of dS that the base state (xbar, vbar) contributes: dS at the zero dual
+        state, without the initial conditions."""
+        c, dt, xbar, vbar = self.c, self.dt, self.x0, self.v0
+        e, m = T["e"], T["m"]
+        b_xi = -np.multiply.outer(e, xbar[cols]) - dt * np.multiply.outer(m, vbar[cols])
+        b_eta = (dt * np.multiply.outer(m, (c["K"] @ xbar + c["D"] @ vbar)[cols])
+                 - np.multiply.outer(e, (c["M"] @ vbar)[cols]))
+        return b_xi, b_eta
 
 
 class KroneckerSolver:
@@ -198,8 +205,7 @@ class KroneckerSolver:
             if self._pc is not None:
                 self._pc.setup_dt(p.dt)
             self._dt = p.dt
-        zero = np.zeros((p.nf, p.n))
-        r_xi, r_eta = p.residual(p.S, zero, zero, affine=True, cols=p.mine)
+        r_xi, r_eta = p.base_terms(p.time_free, p.mine)
         r_xi[0] -= p.x0[p.mine]  # the initial conditions, natural at s = 0
         r_eta[0] -= (p.c["M"] @ p.v0)[p.mine]
         self.b.array[:] = -_pack(r_xi, r_eta)
@@ -239,7 +245,8 @@ class _Operator:
     def mult(self, mat, x, y) -> None:
         p = self.p
         W = _gather(p, x.array_r)
-        r_xi, r_eta = p.residual(p.S, W[:, :p.n], W[:, p.n:], affine=False, cols=p.mine)
+        r_xi, r_eta = p.residual(p.time_free, W[:, :p.n], W[:, p.n:], affine=False,
+                                 cols=p.mine)
         y.array[:] = _pack(r_xi, r_eta)
 
 
@@ -264,8 +271,9 @@ class _FastDiagonalisation:
         w2, Phi = sla.eigh(c["Ke"], c["M"])
         w2 = np.maximum(np.abs(w2), 1e-12 * np.abs(w2).max())  # near flutter: stay SPD
         self.Phi, self.Phi_inv = Phi, np.linalg.inv(Phi)
-        S, Mm = p.S["S"].toarray(), p.S["Mm"].toarray()
-        skew = p.S["G"].toarray() - p.S["C"].toarray()
+        T = p.time_free
+        S, Mm = T["S"].toarray(), T["Mm"].toarray()
+        skew = T["G"].toarray() - T["C"].toarray()
         nf, pd = p.nf, p.degree
         self.factors = []
         for k in p.mine:

@@ -41,7 +41,7 @@ class LinearFlow:
         self.A = A
         self.n = len(x0)
         self.z0 = np.concatenate([x0, v0])
-        self._key: Optional[np.ndarray] = None  # the offsets whose exponentials _E holds
+        self._offsets: Optional[np.ndarray] = None  # the offsets whose exponentials _E holds
         self._E: Optional[np.ndarray] = None
         self._anchor: Optional[Tuple[float, np.ndarray]] = None  # (a, z(a)) of the last chunk
         self._step: Optional[Tuple[float, np.ndarray]] = None  # (h, exp(h A))
@@ -65,13 +65,13 @@ class LinearFlow:
         za = self._state_at(a)
         self._anchor = (a, za)
         offsets = t - a
-        cached = self._key
+        cached = self._offsets
         # equal slabs: the same offsets up to the rounding of t0 + dt s - t0 (relative 1e-12
         # of dt at t / dt ~ 1e4); reusing their exponentials errs by |A| times that mismatch
         if (cached is None or cached.shape != offsets.shape
                 or np.abs(cached - offsets).max() > 1e-9 * max(offsets[-1], 1e-300)):
             self._E = expm(offsets[:, None, None] * self.A)
-            self._key = offsets
+            self._offsets = offsets
         z = self._E @ za
         return z[:, :self.n], z[:, self.n:]
 

@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import abc
 import dataclasses
-from typing import ClassVar, Dict, Optional
+import functools
+from typing import ClassVar, Dict, Optional, Tuple
 
 import numpy as np
 
@@ -62,8 +63,10 @@ class LinearScene(Scene):
 
     def weighting(self) -> str:
         """The weights in use: `weights`, with auto resolved by the conditioning rule."""
-        if self.weights != "auto":
-            return self.weights
+        return self.weights if self.weights != "auto" else self._auto_weighting
+
+    @functools.cached_property
+    def _auto_weighting(self) -> str:  # once per scene: A, B, constants and records ask again
         energy = self.frequency_spread() > STIFF_SPREAD and is_spd(self.energy_stiffness())
         return "energy" if energy else "identity"
 
@@ -93,11 +96,18 @@ class LinearScene(Scene):
         return first_order_matrix(self.mass_matrix(), self.stiffness_matrix(),
                                   self.damping_matrix())
 
+    @functools.cached_property
+    def spectrum(self) -> Tuple[np.ndarray, np.ndarray]:
+        """Eigenvalues and eigenvectors of the first-order system, computed once per scene (the
+        resolution guard, the growth bound and the slab-map check all need them; 0.25 s for a
+        200-link column)."""
+        return np.linalg.eig(self.first_order_matrix())
+
     def fastest_rate(self, x0=None, v0=None) -> float:
         """max |lambda| over the eigenvalues of the first-order system (radians per unit time,
         growth and decay included); given a start state, over the modes it excites (modal
         amplitude above 1e-6 of the state)."""
-        lam, U = np.linalg.eig(self.first_order_matrix())
+        lam, U = self.spectrum
         if x0 is None:
             return float(np.abs(lam).max())
         z0 = np.concatenate([x0, v0])
