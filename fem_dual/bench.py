@@ -1,8 +1,11 @@
 """`fem-dual bench`: error against run time, fem-dual beside the integrators a user would pick.
 
 One problem, one reference (the scene's: matrix exponential or DOP853 at 1e-13). Rows:
-fem-dual at degrees 2, 3, 4 over a range of cells per slab, and scipy's RK45, DOP853 and Radau over
-a range of tolerances, measured in the same process. Wall times are medians of `repeats` runs;
+fem-dual at degrees 2, 3, 4 over a range of cells per slab, fem-dual with --rtol (adaptive slab
+lengths) at the tolerances of `--rtols`, and scipy's RK45, DOP853, its Fortran DOP853
+(`ode('dop853')`, "DOP853-f") and Radau over a range of tolerances (the `--rtols` among them),
+measured in the same process. The peers are evaluated at 1001 equispaced times, fem-dual at its
+vertices; both report the error at the final time too. Wall times are medians of `repeats` runs;
 fem-dual's set-up (form compilation, mesh, spaces, solver objects: `Simulation`, built once per
 degree and cells) and the reference are excluded, and the set-up time is reported on its own as
 compile_s. Each timed fem-dual run assembles, factors and solves afresh.
@@ -27,49 +30,85 @@ from fem_dual.scenes import Scene
 __all__ = ["COLUMNS", "bench", "write_csv", "read_csv", "plot", "table", "ratio_at"]
 
 COLUMNS = ["method", "degree", "cells", "slabs", "rtol", "max_error", "final_error", "wall_s",
-           "compile_s", "samples"]
+           "compile_s", "samples", "estimate"]
+ADAPTIVE_CELLS = 4  # cells per slab of the fem-dual --rtol rows
 TOLERANCES = {"RK45": [1e-4, 1e-6, 1e-8, 1e-10], "DOP853": [1e-6, 1e-8, 1e-10, 1e-12],
-              "Radau": [1e-4, 1e-6, 1e-8]}
+              "DOP853-f": [1e-6, 1e-8, 1e-10, 1e-12], "Radau": [1e-4, 1e-6, 1e-8]}
 
 
 def _state_error(x, v, x_ref, v_ref) -> np.ndarray:
     return np.maximum(np.abs(x - x_ref).max(axis=1), np.abs(v - v_ref).max(axis=1))
 
 
+def _fem_row(sim: Simulation, config: RunConfig, repeats: int, compile_s: float,
+             skipped: Optional[List[str]], what: str) -> Optional[Dict]:
+    """One fem-dual row: median wall time of `repeats` runs, every attempt (rejected slabs
+    included) counted; None (and a line in `skipped`) when the run stops."""
+    walls, result = [], None
+    try:  # configurations the tool refuses are left out, and said so
+        sim.run(config)  # warms the caches
+    except SolveError as exc:
+        if skipped is not None:
+            skipped.append(f"{what}: {exc}")
+        return None
+    for _ in range(repeats):  # every run assembles, factors and solves afresh
+        result = sim.run(config)
+        walls.append(result.timings["total_s"] - result.timings["reference_s"]
+                     - result.timings["compile_s"])
+    flow = config.scene.reference(config.x0, config.v0)
+    x_ref, v_ref = flow(result.t)
+    err = _state_error(result.x, result.v, x_ref, v_ref)
+    return {"method": "fem-dual" if config.rtol is None else "fem-dual-rtol",
+            "degree": config.degree, "cells": config.cells, "slabs": len(result.slab_lengths),
+            "rtol": config.rtol, "max_error": float(err.max()), "final_error": float(err[-1]),
+            "wall_s": float(np.median(walls)), "compile_s": compile_s,
+            "samples": len(result.t), "estimate": result.error_estimate}
+
+
 def _fem_rows(base: RunConfig, degrees: Sequence[int], cells: Sequence[int],
               slabs: Sequence[int], repeats: int, comm: MPI.Comm,
-              skipped: Optional[List[str]] = None) -> List[Dict]:
+              skipped: Optional[List[str]] = None,
+              rtols: Sequence[float] = ()) -> List[Dict]:
     rows = []
     for degree in degrees:
-        for n in cells:
+        for n in sorted(set(cells) | ({ADAPTIVE_CELLS} if rtols else set())):
             sim = Simulation(base.scene, degree, n, comm)  # compiled once per degree and cells
             compile_s = sim.setup_s
-            for k in slabs:
-                config = RunConfig.create(base.scene, T=base.T, cells=n, degree=degree,
-                                          slabs=k, x0=base.x0, v0=base.v0, staging="off")
-                walls, result = [], None
-                try:  # under-resolved or unstable configurations are left out, and said so
-                    sim.run(config)  # warms the caches
-                except SolveError as exc:
-                    if skipped is not None:
-                        skipped.append(f"p={degree} cells={n} slabs={k}: {exc}")
-                    continue
-                for _ in range(repeats):  # every run assembles, factors and solves afresh
-                    result = sim.run(config)
-                    walls.append(result.timings["total_s"] - result.timings["reference_s"]
-                                 - result.timings["compile_s"])
-                flow = base.scene.reference(base.x0, base.v0)
-                x_ref, v_ref = flow(result.t)
-                err = _state_error(result.x, result.v, x_ref, v_ref)
-                rows.append({"method": "fem-dual", "degree": degree, "cells": n, "slabs": k,
-                             "rtol": None, "max_error": float(err.max()),
-                             "final_error": float(err[-1]), "wall_s": float(np.median(walls)),
-                             "compile_s": compile_s, "samples": len(result.t)})
+            configs = []
+            if n in cells:
+                configs += [RunConfig.create(base.scene, T=base.T, cells=n, degree=degree,
+                                             slabs=k, x0=base.x0, v0=base.v0, staging="off")
+                            for k in slabs]
+            if n == ADAPTIVE_CELLS:
+                configs += [RunConfig.create(base.scene, T=base.T, cells=n, degree=degree,
+                                             rtol=tol, x0=base.x0, v0=base.v0, staging="off")
+                            for tol in rtols]
+            for config in configs:
+                what = (f"p={degree} cells={n} " + (f"slabs={config.slabs}" if config.rtol is None
+                                                     else f"rtol={config.rtol:g}"))
+                row = _fem_row(sim, config, repeats, compile_s, skipped, what)
+                if row is not None:
+                    rows.append(row)
     return rows
 
 
+def _compiled_dop853(rhs, z0: np.ndarray, t: np.ndarray, tol: float) -> np.ndarray:
+    """scipy's Fortran DOP853 (`ode('dop853')`) at the sample times: states (samples, 2n)."""
+    from scipy.integrate import ode
+
+    solver = ode(rhs).set_integrator("dop853", rtol=tol, atol=tol, nsteps=10**7)
+    solver.set_initial_value(z0, t[0])
+    out = np.empty((len(t), len(z0)))
+    out[0] = z0
+    for i in range(1, len(t)):
+        out[i] = solver.integrate(t[i])
+        if not solver.successful():
+            raise RuntimeError("dop853 failed")
+    return out
+
+
 def _ode_rows(scene: Scene, T: float, x0: np.ndarray, v0: np.ndarray, samples: int,
-              repeats: int) -> List[Dict]:
+              repeats: int, rtols: Sequence[float] = ()) -> List[Dict]:
     n = scene.n
     Minv = np.linalg.inv(scene.mass_matrix())
     if scene.linear:
@@ -84,33 +123,42 @@ def _ode_rows(scene: Scene, T: float, x0: np.ndarray, v0: np.ndarray, samples: i
     z0 = np.concatenate([x0, v0])
     rows = []
     for method, tolerances in TOLERANCES.items():
-        for tol in tolerances:
-            walls, sol = [], None
+        for tol in sorted(set(tolerances) | set(rtols)):
+            walls, y = [], None
             for _ in range(repeats):
                 tic = time.perf_counter()
-                kwargs = {"jac": jac} if (method == "Radau" and jac is not None) else {}
-                sol = solve_ivp(rhs, (0.0, T), z0, method=method, t_eval=t, rtol=tol,
-                                atol=tol, **kwargs)
+                if method == "DOP853-f":
+                    try:
+                        y = _compiled_dop853(rhs, z0, t, tol)
+                    except RuntimeError:
+                        y = None
+                else:
+                    kwargs = {"jac": jac} if (method == "Radau" and jac is not None) else {}
+                    sol = solve_ivp(rhs, (0.0, T), z0, method=method, t_eval=t, rtol=tol,
+                                    atol=tol, **kwargs)
+                    y = sol.y.T if sol.status == 0 else None
                 walls.append(time.perf_counter() - tic)
-            if sol.status != 0:
+            if y is None:
                 continue
-            err = _state_error(sol.y[:n].T, sol.y[n:].T, x_ref, v_ref)
+            err = _state_error(y[:, :n], y[:, n:], x_ref, v_ref)
             rows.append({"method": method, "degree": None, "cells": None, "slabs": None,
                          "rtol": tol, "max_error": float(err.max()), "final_error": float(err[-1]),
-                         "wall_s": float(np.median(walls)), "compile_s": 0.0, "samples": samples})
+                         "wall_s": float(np.median(walls)), "compile_s": 0.0, "samples": samples,
+                         "estimate": None})
     return rows
 
 
 def bench(base: RunConfig, degrees: Sequence[int] = (2, 3, 4),
           cells: Sequence[int] = (2, 4, 8, 16, 32), repeats: int = 3, samples: int = 1001,
           comm: MPI.Comm = MPI.COMM_WORLD, slabs: Optional[Sequence[int]] = None,
-          skipped: Optional[List[str]] = None) -> List[Dict]:
+          skipped: Optional[List[str]] = None, rtols: Sequence[float] = ()) -> List[Dict]:
     """All rows of the study (the same list on every rank); `slabs` defaults to base.slabs.
-    Configurations too coarse for the fastest mode of a linear scene are left out and listed in
-    `skipped`."""
-    rows = _fem_rows(base, degrees, cells, slabs or [base.slabs], repeats, comm, skipped)
+    Configurations the tool refuses are left out and listed in `skipped`. `rtols` adds
+    fem-dual --rtol rows (ADAPTIVE_CELLS cells per slab, each degree) and the peers at the same
+    tolerances."""
+    rows = _fem_rows(base, degrees, cells, slabs or [base.slabs], repeats, comm, skipped, rtols)
     if comm.rank == 0:
-        rows += _ode_rows(base.scene, base.T, base.x0, base.v0, samples, repeats)
+        rows += _ode_rows(base.scene, base.T, base.x0, base.v0, samples, repeats, rtols)
     return comm.bcast(rows if comm.rank == 0 else None)
 
 
@@ -154,10 +202,12 @@ def plot(rows: List[Dict], path: Path, title: str) -> None:
         label = row["method"]
         if label == "fem-dual":
             label = f"fem-dual p={row['degree']}" + (f", {row['slabs']} slabs" if multi else "")
+        elif label == "fem-dual-rtol":
+            label = f"fem-dual --rtol, p={row['degree']}"
         curves.setdefault(label, []).append(row)
     for label, pts in curves.items():
         # in order of resolution: cells up, or tolerance down
-        pts = sorted(pts, key=lambda r: r["cells"] if r["cells"] is not None else -r["rtol"])
+        pts = sorted(pts, key=lambda r: -r["rtol"] if r["rtol"] is not None else r["cells"])
         ax.loglog([r["wall_s"] for r in pts], [max(r["max_error"], 1e-17) for r in pts],
                   "o-" if label.startswith("fem") else "s--", label=label)
     if max(r["max_error"] for r in rows) > 10:  # diverged configurations: keep the scale readable
@@ -173,14 +223,14 @@ def plot(rows: List[Dict], path: Path, title: str) -> None:
 
 
 def table(rows: List[Dict]) -> str:
-    head = (f"{'method':9s} {'degree':>6s} {'cells':>6s} {'slabs':>6s} {'rtol':>8s} "
+    head = (f"{'method':13s} {'degree':>6s} {'cells':>6s} {'slabs':>6s} {'rtol':>8s} "
             f"{'max_error':>10s} {'final_error':>11s} {'wall_s':>9s}")
     lines = [head]
     for r in rows:
         def f(v, fmt):
             width = int("".join(ch for ch in fmt if ch.isdigit())[:1] or 0)
             return "-".rjust(width) if v is None else format(v, fmt)
-        lines.append(f"{r['method']:9s} {f(r['degree'], '6d')} {f(r['cells'], '6d')} "
+        lines.append(f"{r['method']:13s} {f(r['degree'], '6d')} {f(r['cells'], '6d')} "
                      f"{f(r['slabs'], '6d')} {f(r['rtol'], '8.0e')} {r['max_error']:10.2e} "
                      f"{r['final_error']:11.2e} {r['wall_s']:9.4f}")
     return "\n".join(lines)
@@ -192,5 +242,9 @@ def ratio_at(rows: List[Dict], target: float, peer: str = "DOP853") -> Optional[
     def fastest(method):
         times = [r["wall_s"] for r in rows if r["method"] == method and r["max_error"] <= target]
         return min(times) if times else math.nan
-    ours, theirs = fastest("fem-dual"), fastest(peer)
+    ours = min(fastest("fem-dual"), fastest("fem-dual-rtol"))
+    if math.isnan(fastest("fem-dual-rtol")) or math.isnan(fastest("fem-dual")):
+        ours = fastest("fem-dual") if math.isnan(fastest("fem-dual-rtol")) else \
+            fastest("fem-dual-rtol")
+    theirs = fastest(peer)
     return None if math.isnan(ours) or math.isnan(theirs) else ours / theirs

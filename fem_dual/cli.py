@@ -24,7 +24,7 @@ __all__ = ["main", "build_parser"]
 
 # Options whose value may start with "-" (negative numbers): "--x0 -1,2" is joined to "--x0=-1,2".
 _VALUE_OPTIONS = ("--T", "--x0", "--v0", "--param", "--cells", "--degree", "--slabs",
-                  "--max-halvings")
+                  "--max-halvings", "--rtol", "--atol")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -74,6 +74,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "kronecker (time x space Kronecker sums, matrix-free CG with a "
                    "fast-diagonalisation preconditioner), auto (default) = kronecker from 5 "
                    "dofs")
+    r.add_argument("--rtol", help="choose the slab lengths so that the estimated error stays "
+                   "within atol + rtol * scale (scale: the largest |x|, |v| so far); excludes "
+                   "--slabs")
+    r.add_argument("--atol", help="absolute tolerance with --rtol (default 0)")
     r.add_argument("--out", help="write XDMF output into this directory")
     r.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     r.add_argument("--petsc-option", action="append", default=[], metavar="KEY=VALUE",
@@ -83,6 +87,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--cells", default="2,4,8,16,32", help="cells per slab to sweep")
     b.add_argument("--degrees", default="2,3,4", help="degrees to sweep")
     b.add_argument("--repeats", default="3", help="timed repeats per configuration (median)")
+    b.add_argument("--rtols", default="", help="tolerances of fem-dual --rtol rows (4 cells per "
+                   "slab, each degree), the peers run at them too, e.g. 1e-6,1e-8")
     b.add_argument("--out", default=".", help="directory for bench.csv and bench.png")
     b.add_argument("--json", action="store_true", help='print {"rows": [...]} on stdout')
     f = sub.add_parser("flutter", help="critical follower load: eigenvalues and dual simulations")
@@ -134,9 +140,19 @@ def _summary(result: RunResult) -> str:
         lines.append(f"  staged  each slab solved as {stages} sub-slabs of "
                      f"{result.staging['cells_per_solved_slab']} cells (conditioning rule; "
                      "--staging off to disable)")
+    tol = result.tolerance
+    if tol.get("adaptive"):
+        lines.append(f"  slabs   {len(result.slab_lengths)} chosen for rtol={tol['rtol']:g} "
+                     f"atol={tol['atol']:g} ({result.solver['rejected_slabs']} rejected)")
+    elif result.solver.get("rejected_slabs"):
+        lines.append(f"  slabs   {len(result.slab_lengths)} solved: "
+                     f"{result.solver['rejected_slabs']} attempts were retried shorter")
     if fin["t"] is not None:
+        est = result.estimate
         lines += [f"  final   t={fin['t']:g}  x={fmt(fin['x'])}  v={fmt(fin['v'])}",
-                  f"  error   x_max={e['x_max']:.3e}  v_max={e['v_max']:.3e}  "
+                  f"  error   estimated x_max={est['x_max']:.3e}  v_max={est['v_max']:.3e}  "
+                  f"(no reference needed)",
+                  f"          reference x_max={e['x_max']:.3e}  v_max={e['v_max']:.3e}  "
                   f"final={e['final']:.3e}",
                   f"  H_d     min={h['min']:.6g}  max={h['max']:.6g}  "
                   f"drift per slab={h['drift']:.3e}"]
@@ -179,10 +195,12 @@ def _bench(args, params, comm: MPI.Comm) -> int:
         for n in cells:
             for k in slabs:
                 RunConfig.create(base.scene, T=base.T, cells=n, degree=degree, slabs=k)
+    rtols = [RunConfig.create(base.scene, T=base.T, rtol=item).rtol
+             for item in args.rtols.split(",") if args.rtols.strip()]
     out = check_output_dir_on_root(comm, args.out)
     skipped: List[str] = []
     rows = bm.bench(base, degrees, cells, repeats=repeats, comm=comm, slabs=slabs,
-                    skipped=skipped)
+                    skipped=skipped, rtols=rtols)
     for line in skipped:
         print0(comm, f"fem-dual bench: left out {line}", file=sys.stderr)
     if comm.rank == 0:
@@ -264,7 +282,8 @@ def main(argv: Optional[Sequence[str]] = None, comm: MPI.Comm = MPI.COMM_WORLD) 
                                   degree=args.degree, slabs=args.slabs, x0=args.x0, v0=args.v0,
                                   out=args.out, petsc=petsc, max_halvings=args.max_halvings,
                                   superpose=args.superpose, staging=args.staging,
-                                  recovery=args.recovery, assembly=args.assembly)
+                                  recovery=args.recovery, assembly=args.assembly,
+                                  rtol=args.rtol, atol=args.atol)
         result = run(config, comm, progress=not args.json and sys.stderr.isatty())
     except InputError as exc:
         print0(comm, f"fem-dual: error: {_one_line(exc)}", file=sys.stderr)

@@ -12,6 +12,7 @@ from fem_dual.errors import InputError
 from fem_dual.recovery import RECOVERIES
 from fem_dual.scenes import Scene, get_scene
 from fem_dual.scenes.base import parse_number, parse_vector
+from fem_dual.stepper import Tolerance
 
 __all__ = ["RunConfig", "MAX_VERTICES", "MAX_DEGREE", "STAGING_LIMIT"]
 
@@ -43,6 +44,14 @@ def _whole_number(name: str, value: Number, minimum: int = 1) -> int:
     return int(as_float)
 
 
+def _tolerance(name: str, value: Number) -> float:
+    """A tolerance: finite, positive and below 1."""
+    tol = parse_number(name, value)
+    if not 0.0 < tol < 1.0:
+        raise InputError(f"{name}={value!r} must lie between 0 and 1 (exclusive)")
+    return tol
+
+
 @dataclass(frozen=True)
 class RunConfig:
     """Everything a run needs. Build it with `RunConfig.create`, which validates."""
@@ -61,6 +70,16 @@ class RunConfig:
     staging: str = "auto"  # auto: split slabs whose cells * degree^2 > STAGING_LIMIT
     recovery: str = "momentum"  # primal state from the momenta of L_d, or "dtp" (the DtP map)
     assembly: str = "auto"  # linear scenes: UFL forms + LU, or Kronecker sums + CG
+    rtol: Optional[float] = None  # tolerance-driven slab lengths (None: fixed slabs)
+    atol: float = 0.0
+
+    @property
+    def tolerance(self) -> Tolerance:
+        """The run's tolerance: the user's --rtol/--atol (adaptive slab lengths), or the
+        acceptance rule of fixed slabs."""
+        if self.rtol is None:
+            return Tolerance.fixed()
+        return Tolerance(self.rtol, self.atol, True)
 
     @property
     def kronecker(self) -> bool:
@@ -95,8 +114,13 @@ class RunConfig:
                out: Optional[Union[str, Path]] = None,
                petsc: Optional[Mapping[str, str]] = None,
                max_halvings: Number = 6, superpose: str = "auto", staging: str = "auto",
-               recovery: str = "momentum", assembly: str = "auto") -> "RunConfig":
-        """Validate every input; raises InputError naming the first bad value."""
+               recovery: str = "momentum", assembly: str = "auto",
+               rtol: Optional[Number] = None, atol: Optional[Number] = None) -> "RunConfig":
+        """Validate every input; raises InputError naming the first bad value.
+
+        With `rtol` (and optionally `atol`) the slab lengths are chosen by the error estimate
+        so that the estimated error stays within atol + rtol * scale (see fem_dual.stepper);
+        `slabs` is then only the first guess's upper bound and must be left at 1."""
         if isinstance(scene, str):
             scene = get_scene(scene).from_params(params)
         elif params:
@@ -140,6 +164,13 @@ class RunConfig:
         if assembly == "kronecker" and recovery != "momentum":
             raise InputError("assembly=kronecker recovers the motion from the momenta only "
                              f"(recovery={recovery!r})")
+        rtol_ = None if rtol is None else _tolerance("rtol", rtol)
+        if atol is not None and rtol is None:
+            raise InputError(f"atol={atol!r} needs rtol (atol alone sets no tolerance)")
+        atol_ = 0.0 if atol is None else _tolerance("atol", atol)
+        if rtol_ is not None and slabs_ != 1:
+            raise InputError(f"slabs={slabs!r} and rtol={rtol!r} contradict each other: rtol "
+                             "chooses the slab lengths")
         return cls(scene, T_value, cells_, degree_, slabs_, x0_, v0_,
                    None if out is None else Path(out), petsc_, halvings, superpose, staging,
-                   recovery, assembly)
+                   recovery, assembly, rtol_, atol_)

@@ -11,7 +11,7 @@ import json
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Optional
+from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 from mpi4py import MPI
@@ -28,9 +28,12 @@ from fem_dual.problem import SlabProblem
 from fem_dual.recovery import VertexSampler, VertexValues
 from fem_dual.solvers import LinearSlabSolver, solver_prefix
 from fem_dual.superposition import Superposition
-from meshes import SlabSchedule
+from fem_dual.stepper import (ESTIMATE_SAFETY, ROUNDOFF_REL, ErrorWeights, SlabController, SlabEstimate,
+                              initial_fraction, motion_rate)
 
-__all__ = ["RunResult", "Simulation", "run"]
+__all__ = ["RunResult", "Simulation", "AcceptedSlab", "run"]
+
+ADAPTIVE_LEVELS = 40  # --rtol: the shortest slab is T / 2^40
 
 
 @dataclass
@@ -59,6 +62,9 @@ class RunResult:
     output_files: List[str] = field(default_factory=list)
     staging: Dict[str, Any] = field(default_factory=dict)
     recovery: str = "momentum"
+    error_estimate: Optional[float] = None
+    estimate: Dict[str, Any] = field(default_factory=dict)
+    tolerance: Dict[str, Any] = field(default_factory=dict)
 
     @property
     def final(self) -> Dict[str, List[float]]:
@@ -91,6 +97,8 @@ class RunResult:
             "final": self.final, "error": self.error, "hamiltonian": self.hamiltonian,
             "solver": self.solver, "timings": self.timings, "output_files": self.output_files,
             "staging": self.staging, "recovery": self.recovery,
+            "error_estimate": self.error_estimate, "estimate": self.estimate,
+            "tolerance": self.tolerance,
         }
         if arrays:
             out.update(t=self.t.tolist(), x=self.x.tolist(), v=self.v.tolist())
@@ -110,9 +118,13 @@ class _Accumulator:
         self.final_err = (float("nan"), float("nan"))
         self.ham: List[Dict[str, float]] = []
         self.reference_s = 0.0
+        self.est_x = self.est_v = 0.0
+        self.est_final = (0.0, 0.0)
+        self.estimates: List[Dict[str, float]] = []
 
-    def add(self, t0: float, dt: float, vals: VertexValues, first: bool) -> None:
-        keep = slice(0 if first else 1, None)  # each slab junction once: the end of the slab before
+    def add(self, slab: "AcceptedSlab") -> None:
+        t0, dt, vals = slab.t0, slab.dt, slab.values
+        keep = slice(0 if slab.index == 0 else 1, None)  # each junction once: the end of the slab
         t = t0 + dt * vals.s[keep]
         x, v = vals.x[keep], vals.v[keep]
         tic = time.perf_counter()
@@ -122,6 +134,10 @@ class _Accumulator:
         self.err_x, self.err_v = max(self.err_x, ex.max()), max(self.err_v, ev.max())
         self.final_err = (float(ex[-1]), float(ev[-1]))
         self.t.append(t), self.x.append(x), self.v.append(v)
+        est_x, est_v = slab.estimate.reported(keep)
+        self.est_x, self.est_v = max(self.est_x, est_x.max()), max(self.est_v, est_v.max())
+        self.est_final = (float(est_x[-1]), float(est_v[-1]))
+        self.estimates.append(slab.estimate.record())
         h = vals.hamiltonian
         scale = max(np.abs(h).max(), np.finfo(float).tiny)
         self.ham.append({"min": float(h.min()), "max": float(h.max()),
@@ -137,6 +153,16 @@ class _Accumulator:
             return {"min": None, "max": None, "drift": None, "per_slab": []}
         return {"min": min(h["min"] for h in self.ham), "max": max(h["max"] for h in self.ham),
                 "drift": max(h["drift"] for h in self.ham), "per_slab": self.ham}
+
+    def estimate_max(self) -> Optional[float]:
+        """The estimated max-norm error of the state over all output times."""
+        return max(self.est_x, self.est_v) if self.t else None
+
+    def estimate(self) -> Dict[str, Optional[float]]:
+        if not self.t:
+            return {"x_max": None, "v_max": None, "final": None}
+        return {"x_max": self.est_x, "v_max": self.est_v, "final": max(self.est_final),
+                "final_x": self.est_final[0], "final_v": self.est_final[1]}
 
     def error(self) -> Dict[str, Optional[float]]:
         if not self.t:
@@ -172,31 +198,38 @@ class Simulation:
         comm: the communicator.
         petsc: PETSc options for the slab solver.
         recovery: how the primal state is read from the dual solution ("momentum" or "dtp").
+        kronecker: linear scenes: solve in Kronecker form (matrix-free CG).
+        with_dual: also sample the dual fields (output); the error companion does without.
     """
 
     def __init__(self, scene, degree: int, cells: int, comm: MPI.Comm = MPI.COMM_WORLD,
                  petsc: Optional[Dict[str, str]] = None, recovery: str = "momentum",
-                 kronecker: bool = False):
+                 kronecker: bool = False, with_dual: bool = True):
         quiet_jit_logging()
         tic = time.perf_counter()
         self.scene, self.degree, self.cells, self.comm = scene, degree, cells, comm
         self.prefix = solver_prefix(scene.name)
-        self.recovery, self.kronecker = recovery, kronecker
+        self.recovery, self.kronecker, self.petsc = recovery, kronecker, petsc
         if kronecker:
             self.problem = KroneckerProblem(scene, degree, cells, comm)
             self.solver = KroneckerSolver(self.problem, self.prefix, petsc)
-            self.sampler = KroneckerSampler(self.problem)
+            self.sampler = KroneckerSampler(self.problem, with_dual=with_dual)
         else:
             self.problem = SlabProblem(scene, degree, cells, comm)
             solver_class = LinearSlabSolver if scene.linear else NewtonSlabSolver
             self.solver = solver_class(self.problem, self.prefix, petsc)
-            self.sampler = VertexSampler(self.problem, with_dual=True, recovery=recovery)
+            self.sampler = VertexSampler(self.problem, with_dual=with_dual, recovery=recovery)
         self.setup_s = time.perf_counter() - tic
         self._fresh = True
+        self._companion: Optional["Simulation"] = None
+        self.superposition = None
+        self.tangent_solves = 0
 
     def uses_superposition(self, config: RunConfig) -> bool:
         if config.superpose != "auto":
             return config.superpose == "yes"
+        if config.rtol is not None:  # adaptive lengths recur (powers of two): bases pay off
+            return self.scene.linear
         return self.scene.linear and config.slab_count > 2 * self.scene.n
 
     @classmethod
@@ -205,17 +238,79 @@ class Simulation:
         return cls(config.scene, config.degree, config.slab_cells, comm, config.petsc,
                    config.recovery, config.kronecker)
 
-    def run(self, config: RunConfig, progress: bool = False) -> RunResult:
-        """Solve the dual problem slab by slab, recover the primal motion, compare with the
-        reference (see `run`). The matrix is assembled and factored again in every run."""
-        if ((config.scene.name, config.degree, config.slab_cells, config.recovery,
-             config.kronecker)
-                != (self.scene.name, self.degree, self.cells, self.recovery, self.kronecker)):
-            raise ValueError("the configuration does not match the compiled simulation")
+    @property
+    def companion(self) -> "Simulation":
+        """The same slabs with degree p + 1: the error estimate's embedded partner (built on
+        first use, then kept)."""
+        if self._companion is None:
+            self._companion = Simulation(self.scene, self.degree + 1, self.cells, self.comm,
+                                         self.petsc, self.recovery, self.kronecker,
+                                         with_dual=False)
+            self.setup_s += self._companion.setup_s
+        return self._companion
+
+    def begin(self, config: RunConfig) -> None:
+        """Set up a run: the scene's parameter values, fresh counts, superposition bases."""
         if config.scene != self.scene:
             self.problem.set_scene_constants(config.scene)
             self.scene = config.scene
         self.solver.reset()
+        self.superposition = None
+        self.tangent_solves = 0
+        if self.uses_superposition(config):
+            kind = KroneckerSuperposition if self.kronecker else Superposition
+            self.superposition = kind(self.problem, self.solver, self.sampler, config.T)
+
+    def solve_slab(self, z0: np.ndarray, t0: float, dt: float) -> Optional[VertexValues]:
+        """The vertex values of the slab [t0, t0 + dt] from z0 = (x0, v0), on rank 0 (None
+        elsewhere). Collective; raises SolveError when the slab cannot be solved."""
+        n = self.scene.n
+        if self.superposition is not None:
+            return self.superposition(z0[:n], z0[n:], dt)
+        self.problem.set_slab(z0[:n], z0[n:], dt, t0)
+        self.solver.solve()
+        return self.sampler()
+
+    def tangent(self, z0: np.ndarray, dz: np.ndarray, t0: float, dt: float,
+                values: Optional[VertexValues]) -> Optional[np.ndarray]:
+        """Psi dz: the first-order change (vertices, 2n) of the slab's vertex values `values`
+        (solved from z0) when its start state changes by dz, on rank 0. A linear slab map is
+        its own tangent; a nonlinear one is linearised around the converged solution. Collective;
+        call it right after the slab was solved."""
+        if not np.any(dz):
+            return None if values is None else np.zeros((len(values.s), 2 * self.scene.n))
+        if self.scene.linear:
+            if self.superposition is None:
+                self.tangent_solves += 1
+            moved = self.solve_slab(dz, t0, dt)
+            return None if moved is None else np.hstack([moved.x, moved.v])
+        eps = self.solver.tangent(z0, dz)
+        try:
+            moved = self.sampler()
+        finally:
+            self.solver.restore(z0)
+        if moved is None:
+            return None
+        return (np.hstack([moved.x, moved.v]) - np.hstack([values.x, values.v])) / eps
+
+    def verify(self) -> Optional[str]:
+        """Why the last slab solve cannot be trusted although it converged, or None."""
+        stalled = getattr(self.solver, "stalled", None)
+        if stalled is not None and stalled():
+            its = self.solver.iterations[-1]
+            return (f"Newton stalled before it converged ({its} iterations): it may have found "
+                    "another solution branch")
+        return None
+
+    def run(self, config: RunConfig, progress: bool = False) -> RunResult:
+        """Solve the dual problem slab by slab, recover the primal motion, estimate its error,
+        compare with the reference (see `run`)."""
+        if ((config.scene.name, config.degree, config.slab_cells, config.recovery,
+             config.kronecker)
+                != (self.scene.name, self.degree, self.cells, self.recovery, self.kronecker)):
+            raise ValueError("the configuration does not match the compiled simulation")
+        self.begin(config)
+        self.companion.begin(config)
         return _run_slabs(self, config, progress)
 
 
@@ -260,111 +355,220 @@ def _insane(vals: VertexValues, bound: Optional[GrowthBound], t: float) -> Optio
     return None
 
 
+@dataclass
+class AcceptedSlab:
+    """What the sinks receive for every accepted slab (rank 0)."""
+
+    index: int
+    t0: float
+    dt: float
+    values: VertexValues
+    estimate: SlabEstimate
+
+
+class _XdmfSink:
+    """The dual fields and the recovered motion per slab into `out/<scene>.xdmf`, the trajectory
+    polyline at the end (rank 0)."""
+
+    def __init__(self, config: RunConfig, name: str):
+        self.outdir = OutputDir(config.out)
+        self.name = name
+        self.series: Optional[XdmfSeries] = None
+        self.seconds = 0.0
+
+    def add(self, slab: AcceptedSlab) -> None:
+        tic = time.perf_counter()
+        vals = slab.values
+        if self.series is None:
+            self.series = XdmfSeries(self.outdir.file(f"{self.name}.xdmf"), slab.dt * vals.s)
+        self.series.write(slab.t0, {"t": slab.t0 + slab.dt * vals.s, "xi": vals.xi,
+                                    "eta": vals.eta, "x_hat": vals.x, "v_hat": vals.v,
+                                    "hamiltonian": vals.hamiltonian,
+                                    "error_estimate": np.maximum(*slab.estimate.reported())})
+        self.seconds += time.perf_counter() - tic
+
+    def close(self, t: np.ndarray, x: np.ndarray, v: np.ndarray) -> List[str]:
+        tic = time.perf_counter()
+        if self.series is not None:
+            self.series.close()
+            write_polyline(self.outdir.file(f"{self.name}_trajectory.xdmf"), x,
+                           {"t": t, "v_hat": v})
+        files = [str(p) for p in self.outdir.commit()]
+        self.seconds += time.perf_counter() - tic
+        return files
+
+
+class _ProgressSink:
+    def __init__(self, T: float):
+        self.bar = _progress_bar(T)
+
+    def add(self, slab: AcceptedSlab) -> None:
+        self.bar.update(slab.dt)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+def _solves(sim: Simulation) -> int:
+    """Slab solves of the answer (tangents not counted) or of the companion."""
+    if sim.superposition is not None:
+        return sim.superposition.basis_solves
+    return len(sim.solver.iterations) - sim.tangent_solves
+
+
+def _controller(sim: Simulation, config: RunConfig) -> SlabController:
+    """Fixed slabs (cut at most max_halvings times), or adaptive lengths from a first guess."""
+    order = 2 * config.degree
+    if config.rtol is None:
+        return SlabController(config.T, config.slab_count, config.max_halvings, order)
+    scene = sim.scene
+    if scene.linear:
+        rate = scene.fastest_rate(config.x0, config.v0)
+    else:
+        a0 = np.linalg.solve(scene.mass_matrix(), scene.force_numpy(config.x0))
+        rate = motion_rate(config.x0, config.v0, a0)
+    return SlabController(config.T, 1, ADAPTIVE_LEVELS, order,
+                          first=initial_fraction(rate, config.T, sim.cells))
+
+
+def _judge(vals: VertexValues, companion: VertexValues, psi: Optional[np.ndarray],
+           weights: ErrorWeights, bound: Optional[GrowthBound], t0: float, dt: float,
+           T: float) -> Tuple[str, Optional[float], str, Optional[SlabEstimate]]:
+    """(action, weighted local error, reason, estimate) for a solved slab on rank 0: "accept",
+    "retry" (shorter) or "refuse" (the run cannot vouch for its answer any more)."""
+    problem_text = _insane(vals, bound, t0 + dt)
+    if problem_text:
+        return "retry", None, problem_text, None
+    local = ESTIMATE_SAFETY * np.hstack([companion.x - vals.x, companion.v - vals.v])
+    glob = local if psi is None else local + psi
+    if not (np.isfinite(local).all() and np.isfinite(glob).all()):
+        return "retry", None, "the error estimate is not finite", None
+    scales = weights.with_motion(vals.x, vals.v)
+    err_local = weights.norm(local, scales) / (dt / T)
+    err_global = weights.norm(glob, scales)
+    est = SlabEstimate(t0, dt, local, glob, err_local, err_global,
+                       (ROUNDOFF_REL * scales[0], ROUNDOFF_REL * scales[1]))
+    tol = weights.tol
+    what = f"rtol={tol.rtol:g}, atol={tol.atol:g}" if tol.adaptive else \
+        f"{tol.rtol:g} of the motion's scale"
+    if err_local > 1.0:
+        return "retry", err_local, (f"estimated local error {np.abs(local).max():.3g} exceeds "
+                                    f"its share of the tolerance ({what})"), est
+    if err_global > tol.refuse_factor:
+        return "refuse", err_local, (f"estimated error {np.abs(glob).max():.3g} exceeds the "
+                                     f"tolerance ({what}) by a factor {err_global:.3g}"), est
+    return "accept", err_local, "", est
+
+
+def _advice(config: RunConfig) -> str:
+    if config.rtol is None:
+        return ("use more slabs or cells per slab, a higher degree, or --rtol to choose the "
+                "slab lengths")
+    return "loosen --rtol, or raise --cells or --degree"
+
+
 def _run_slabs(sim: Simulation, config: RunConfig, progress: bool) -> RunResult:
     tic = time.perf_counter()
-    comm, scene, problem, solver, sampler = (sim.comm, sim.scene, sim.problem, sim.solver,
-                                             sim.sampler)
+    comm, scene = sim.comm, sim.scene
     root = comm.rank == 0
-    superposition = None
-    if sim.uses_superposition(config):
-        kind = KroneckerSuperposition if sim.kronecker else Superposition
-        superposition = kind(problem, solver, sampler, config.T)
+    n = scene.n
     acc = _Accumulator(config) if root else None
-    outdir = OutputDir(config.out) if (root and config.out is not None) else None
-    series: Optional[XdmfSeries] = None
+    xdmf = _XdmfSink(config, scene.name) if (root and config.out is not None) else None
+    bar = _ProgressSink(config.T) if (progress and root) else None
+    sinks = [s for s in (acc, xdmf, bar) if s is not None]
     timings = {"compile_s": sim.setup_s if sim._fresh else 0.0, "solve_s": 0.0,
-               "recovery_s": 0.0, "output_s": 0.0}
+               "estimate_s": 0.0, "recovery_s": 0.0, "output_s": 0.0}
     sim._fresh = False
-    lengths: List[float] = []
-    retries: List[Dict[str, Any]] = []
-    failure: Optional[SolveError] = None
-    state = (config.x0, config.v0)
-
-    halvings = 0 if scene.linear else config.max_halvings  # a linear solve does not diverge
+    weights = ErrorWeights(config.tolerance, config.x0, config.v0) if root else None
     rate = scene.fastest_rate(config.x0, config.v0) if scene.linear else None
     bound = GrowthBound(scene, config.x0, config.v0) if (scene.linear and root) else None
-    schedule = SlabSchedule(config.T, config.slab_count, halvings)
-    bar = _progress_bar(config.T) if (progress and root) else None
+    controller = _controller(sim, config)
+    z = np.concatenate([config.x0, config.v0])
+    d = np.zeros(2 * n)  # estimated global error of the state at the slab start
+    lengths: List[float] = []
+    rejected: List[Dict[str, Any]] = []
+    failure: Optional[SolveError] = None
     k = 0
-    while not schedule.done():
-        t0, dt = schedule.current()
+    while not controller.done():
+        t0, dt = controller.current()
         t1 = time.perf_counter()
+        estimate = None
         try:
-            check_resolution(rate, dt, problem.mesh.cells, config.degree)
-            if superposition is not None:
-                vals = superposition(state[0], state[1], dt)
-                t2 = time.perf_counter()
-            else:
-                problem.set_slab(state[0], state[1], dt, t0)
-                solver.solve()
-                t2 = time.perf_counter()
-                vals = sampler()
-            problem_text = bcast(comm, _insane(vals, bound, t0 + dt) if root else None)
-            if problem_text:
-                raise SolveError(problem_text)
+            check_resolution(rate, dt, sim.cells, config.degree)
+            vals = sim.solve_slab(z, t0, dt)
+            suspicious = sim.verify()
+            if suspicious:
+                raise SolveError(suspicious)
+            t2 = time.perf_counter()
+            psi = sim.tangent(z, d, t0, dt, vals)
+            companion = sim.companion.solve_slab(z, t0, dt)
+            timings["estimate_s"] += time.perf_counter() - t2
+            verdict = None
+            if root:
+                action, err, reason, estimate = _judge(vals, companion, psi, weights, bound,
+                                                       t0, dt, config.T)
+                verdict = (action, err, reason)
+            action, err, reason = bcast(comm, verdict)
         except SolveError as exc:
-            if schedule.halve():
-                retries.append({"t0": t0, "dt": dt, "reason": str(exc)})
-                continue
-            failure = SolveError(f"slab {k} (t = {t0:g} .. {t0 + dt:g}): {exc}", slab=k)
+            action, err, reason = "retry", None, str(exc)
+        timings["solve_s"] += time.perf_counter() - t1
+        if action == "retry" and controller.reject(err):
+            rejected.append({"t0": t0, "dt": dt, "reason": reason})
+            continue
+        if action != "accept":
+            what = "cannot vouch for the answer" if action == "refuse" else "no shorter slab left"
+            failure = SolveError(f"slab {k} (t = {t0:g} .. {t0 + dt:g}): {reason}; {what}; "
+                                 f"{_advice(config)}", slab=k)
             break
-        timings["solve_s"] += t2 - t1
-        timings["recovery_s"] += time.perf_counter() - t2
         if root:
-            acc.add(t0, dt, vals, first=(k == 0))
-            if outdir is not None:
-                t3 = time.perf_counter()
-                if series is None:
-                    series = XdmfSeries(outdir.file(f"{scene.name}.xdmf"),
-                                        config.T / config.slab_count * vals.s)
-                series.write(t0, {"t": t0 + dt * vals.s, "xi": vals.xi, "eta": vals.eta,
-                                  "x_hat": vals.x, "v_hat": vals.v,
-                                  "hamiltonian": vals.hamiltonian})
-                timings["output_s"] += time.perf_counter() - t3
-            if bar is not None:
-                bar.update(dt)
+            slab = AcceptedSlab(k, t0, dt, vals, estimate)
+            for sink in sinks:
+                sink.add(slab)
+            weights.record(vals.x, vals.v)
+            z_next = np.concatenate([vals.x[-1], vals.v[-1]])
+            d_next = estimate.glob[-1].copy()
         lengths.append(dt)
-        if superposition is None:  # the next slab's constants are set on every rank
-            state = bcast(comm, (vals.x[-1].copy(), vals.v[-1].copy()) if root else None)
-        elif root:
-            state = (vals.x[-1].copy(), vals.v[-1].copy())
-        schedule.accept()
+        z, d = bcast(comm, (z_next, d_next) if root else None)
+        controller.accept(err)
         k += 1
     if bar is not None:
         bar.close()
 
     result = None
     if root:
-        t, x, v = acc.arrays(scene.n)
+        t, x, v = acc.arrays(n)
         files: List[str] = []
-        if outdir is not None:
-            t3 = time.perf_counter()
-            if series is not None:
-                series.close()
-                write_polyline(outdir.file(f"{scene.name}_trajectory.xdmf"), x,
-                               {"t": t, "v_hat": v})
-            files = [str(p) for p in outdir.commit()]
-            timings["output_s"] += time.perf_counter() - t3
+        if xdmf is not None:
+            files = xdmf.close(t, x, v)
+            timings["output_s"] = xdmf.seconds
         timings["reference_s"] = acc.reference_s
         timings["total_s"] = time.perf_counter() - tic + timings["compile_s"]
-        record = _solver_record(solver, sim.prefix)
-        record["halved_slabs"] = retries
-        record["superposition"] = superposition is not None
+        record = _solver_record(sim.solver, sim.prefix)
+        record["halved_slabs"] = rejected
+        record["rejected_slabs"] = len(rejected)
+        record["superposition"] = sim.superposition is not None
+        record["estimates"] = acc.estimates
+        record["companion_degree"] = sim.companion.degree
         if scene.linear:
             record["weighting"] = scene.weighting()
             record["assembly"] = "kronecker" if sim.kronecker else "forms"
-        record["slab_solves"] = (superposition.basis_solves if superposition is not None
-                                 else len(solver.iterations))
+        record["slab_solves"] = _solves(sim)
+        record["companion_solves"] = _solves(sim.companion)
+        record["tangent_solves"] = sim.tangent_solves
+        tol = config.tolerance
         result = RunResult(
             scene=scene.name, parameters=scene.parameters(), T=config.T, cells=config.cells,
-            degree=config.degree, slabs=config.slabs, x0=config.x0.tolist(),
-            v0=config.v0.tolist(), dofs_per_slab=problem.num_dofs, t=t, x=x, v=v,
-            error=acc.error(), hamiltonian=acc.hamiltonian(), timings=timings,
+            degree=config.degree, slabs=config.slabs if config.rtol is None else len(lengths),
+            x0=config.x0.tolist(), v0=config.v0.tolist(), dofs_per_slab=sim.problem.num_dofs,
+            t=t, x=x, v=v, error=acc.error(), hamiltonian=acc.hamiltonian(), timings=timings,
             solver=record, slab_lengths=lengths, output_files=files,
             staging={"mode": config.staging, "stages_per_slab": config.stages,
-                     "solved_slabs": config.slab_count, "cells_per_solved_slab": config.slab_cells,
+                     "solved_slabs": len(lengths), "cells_per_solved_slab": config.slab_cells,
                      "limit_cells_times_degree_squared": STAGING_LIMIT},
-            recovery=config.recovery)
+            recovery=config.recovery, error_estimate=acc.estimate_max(),
+            estimate=acc.estimate(),
+            tolerance={"rtol": tol.rtol, "atol": tol.atol, "adaptive": tol.adaptive,
+                       "scale_x": weights.scale_x, "scale_v": weights.scale_v})
         if failure is not None:
             result.status, result.message = "failed", str(failure)
     result = bcast(comm, result)

@@ -34,6 +34,7 @@ from scipy import sparse
 
 from fem_dual.errors import SolveError
 from fem_dual.recovery import VertexValues
+from fem_dual.solvers import check_true_residual
 from fem_dual.superposition import stable_or_raise
 
 __all__ = ["TimeMatrices", "KroneckerProblem", "KroneckerSolver", "KroneckerSampler",
@@ -215,6 +216,7 @@ class KroneckerSolver:
         if reason < 0:
             raise SolveError(f"CG did not converge (KSP reason {reason}, "
                              f"{self.ksp.getIterationNumber()} iterations)")
+        check_true_residual(self.ksp, self.A, self.x, self.b)
         self.iterations.append(self.ksp.getIterationNumber())
         p.W[p.free] = _gather(p, self.x.array_r)
 

@@ -150,9 +150,14 @@ class SlabProblem:
     def set_slab(self, x0: np.ndarray, v0: np.ndarray, dt: float, t0: float = 0.0) -> None:
         """Start a slab [t0, t0 + dt] from (x0, v0), which is also the base state of H; the dual
         state starts from zero, whose DtP image is the base state."""
-        self.x0.value, self.v0.value = x0, v0
-        self.xbar.value, self.vbar.value = x0, v0
+        self.set_start(x0, v0)
         self.dt.value, self.t0.value = dt, t0
         self.w.x.array[:] = 0.0
         if self.pointwise is not None:
             self.pointwise.reset(x0)
+
+    def set_start(self, x0: np.ndarray, v0: np.ndarray) -> None:
+        """The slab's start state, which is also its base state; the dual state is kept (the
+        tangent of the slab map perturbs the start of a solved slab)."""
+        self.x0.value, self.v0.value = x0, v0
+        self.xbar.value, self.vbar.value = x0, v0

@@ -19,7 +19,7 @@ from fem_dual.errors import SolveError
 from fem_dual.problem import SlabProblem
 
 __all__ = ["LINEAR_DEFAULTS", "direct_solver", "solver_prefix", "petsc_options", "CompiledSlab",
-           "LinearSlabSolver"]
+           "LinearSlabSolver", "check_true_residual", "TRUE_RESIDUAL_TOL"]
 
 LINEAR_DEFAULTS: Dict[str, str] = {
     "ksp_type": "preonly",
@@ -123,6 +123,7 @@ class LinearSlabSolver(CompiledSlab):
         reason = self.ksp.getConvergedReason()
         if reason < 0:
             raise SolveError(f"linear solve did not converge (KSP reason {reason})")
+        check_true_residual(self.ksp, self.A, p.w.vector, self.b)
         self.iterations.append(self.ksp.getIterationNumber())
         p.w.x.scatter_forward()
 
@@ -135,6 +136,32 @@ class LinearSlabSolver(CompiledSlab):
         lam_max = _largest_eigenvalue(self.A.mult, self.A, self.problem.bcs, iterations)
         lam_min = 1.0 / _largest_eigenvalue(self.ksp.solve, self.A, self.problem.bcs, iterations)
         return lam_max / lam_min
+
+
+TRUE_RESIDUAL_TOL = 1e-6  # |b - A x| / |b| a slab solve must reach (garbage solvers: ~1)
+
+
+def check_true_residual(ksp: PETSc.KSP, A: PETSc.Mat, x: PETSc.Vec, b: PETSc.Vec) -> None:
+    """SolveError unless x solves A x = b to TRUE_RESIDUAL_TOL: a KSP that "converged" on a
+    preconditioned or unchecked residual (preonly with a preconditioner that is not a direct
+    solver, a loose rtol) must not pass its answer on. Collective."""
+    r = b.duplicate()
+    A.mult(x, r)
+    r.aypx(-1.0, b)
+    bnorm, rnorm = b.norm(), r.norm()
+    r.destroy()
+    if not rnorm <= TRUE_RESIDUAL_TOL * max(bnorm, 1e-300):
+        pc = ksp.getPC().getType()
+        if pc in ("lu", "cholesky"):
+            raise SolveError(f"the slab matrix is numerically singular: its LU solve leaves a "
+                             f"true residual {rnorm / max(bnorm, 1e-300):.3g} relative; the "
+                             "scene's scales are too far apart (rescale time or masses, or "
+                             "give H weights A and B that balance them)")
+        raise SolveError(f"the slab's linear solve is inaccurate: true residual "
+                         f"{rnorm / max(bnorm, 1e-300):.3g} relative (at most "
+                         f"{TRUE_RESIDUAL_TOL:g}) with ksp_type={ksp.getType()}, pc_type={pc}; "
+                         "use a direct solver (pc_type=lu) or an iterative one with ksp_rtol "
+                         "1e-12")
 
 
 def _largest_eigenvalue(apply, A: PETSc.Mat, bcs, iterations: int) -> float:

@@ -124,7 +124,8 @@ def test_xdmf_output_matches_json(tmp_path_factory, capsys):
         for k in range(3):
             t0, pdata, _ = reader.read_data(k)
             assert t0 == pytest.approx(k * 1.0)
-            assert set(pdata) == {"t", "xi", "eta", "x_hat", "v_hat", "hamiltonian"}
+            assert set(pdata) == {"t", "xi", "eta", "x_hat", "v_hat", "hamiltonian",
+                                  "error_estimate"}
             assert np.isfinite(pdata["x_hat"]).all()
             assert np.allclose(pdata["xi"][-1], 0) and np.allclose(pdata["eta"][-1], 0)
             t_all.append(pdata["t"] if k == 0 else pdata["t"][1:])

@@ -19,7 +19,7 @@ def _errors(cells_list, **kw):
 
 @pytest.mark.mpi
 def test_refinement_reaches_the_floor_and_stays_there():
-    cells = [5, 10, 20, 40, 80, 400, 1600, 3200]
+    cells = [10, 20, 40, 80, 400, 1600, 3200]  # 5 cells: 4 % wrong, refused by the estimate
     errors = _errors(cells)
     assert errors[0] > 1e-6  # a real refinement study, not a flat line
     first = next(i for i, e in enumerate(errors) if e <= 1e-11)

@@ -42,7 +42,10 @@ def test_superposition_equals_solving_every_slab(case, tmp_path_factory):
                          if isinstance(obj, h5py.Dataset) else None)
             assert len(names) > 12
             for name in names:
-                assert _same(s[name][()], d[name][()], rel=1e-10), name
+                if name.endswith("error_estimate"):  # carries the round-off of its tangents
+                    assert np.allclose(s[name][()], d[name][()], rtol=1e-2, atol=1e-12), name
+                else:
+                    assert _same(s[name][()], d[name][()], rel=1e-10), name
 
 
 @pytest.mark.mpi
@@ -69,7 +72,9 @@ def test_simulation_reruns_with_new_parameters_like_fresh_runs():
     again = sim.run(first)
     assert again.timings["compile_s"] > 0.0
     again = sim.run(first)
-    assert again.timings["compile_s"] == 0.0 and again.solver["ksp_iterations"] == [1, 1]
+    assert again.timings["compile_s"] == 0.0
+    assert again.solver["ksp_iterations"] == [1, 1, 1]  # 2 slabs, 1 tangent of the estimate
+    assert again.solver["slab_solves"] == 2 and again.solver["tangent_solves"] == 1
     assert _same(again.x, run(first).x, rel=1e-14)
     loaded = RunConfig.create("ziegler", {"P": "1.7", "d1": "0.1"}, T=5.0, cells=10, degree=3,
                               slabs=2)
