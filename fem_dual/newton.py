@@ -56,9 +56,13 @@ def _at_round_off(reason: int, history: List[float], size: float) -> bool:
     of the start state's size (the initial conditions enter the residual as they are)."""
     stuck = reason in (PETSc.SNES.ConvergedReason.DIVERGED_LINE_SEARCH,
                        PETSc.SNES.ConvergedReason.DIVERGED_MAX_IT)
-    floor = max(ROUND_OFF_REDUCTION * history[0], ROUND_OFF_ABSOLUTE * size) if history else 0
     return (stuck and len(history) > 1 and math.isfinite(history[-1])
-            and min(history) <= floor)
+            and min(history) <= round_off_floor(history, size))
+
+
+def round_off_floor(history: List[float], size: float) -> float:
+    """The residual below which Newton is at the round-off of the assembled residual."""
+    return max(ROUND_OFF_REDUCTION * history[0], ROUND_OFF_ABSOLUTE * size) if history else 0.0
 
 
 class NewtonSlabSolver(CompiledSlab):
@@ -81,6 +85,7 @@ class NewtonSlabSolver(CompiledSlab):
         self.residual_norms: List[float] = []
         self.histories: List[List[float]] = []
         self._error: Optional[str] = None
+        self._floor = 0.0
 
     def reset(self) -> None:
         """Forget the counts of earlier runs."""
@@ -132,6 +137,7 @@ class NewtonSlabSolver(CompiledSlab):
                              f"{self.snes.getIterationNumber()} iterations); use smaller slabs "
                              "(more --slabs)")
         self._update(self.x)
+        self._floor = round_off_floor(history, size)
         self.iterations.append(self.snes.getIterationNumber())
         self.residual_norms.append(history[-1] if history else 0.0)
         self.histories.append(history)
@@ -171,4 +177,4 @@ class NewtonSlabSolver(CompiledSlab):
         """Whether the last solve's residual history stalled before it converged."""
         from fem_dual.stepper import stalled
 
-        return bool(self.histories) and stalled(self.histories[-1])
+        return bool(self.histories) and stalled(self.histories[-1], self._floor)

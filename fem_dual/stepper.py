@@ -217,9 +217,9 @@ def motion_rate(x0: np.ndarray, v0: np.ndarray, a0: np.ndarray) -> float:
     return max(finite) if finite else 0.0
 
 
-def stalled(history: List[float]) -> bool:
+def stalled(history: List[float], floor: float = 0.0) -> bool:
     """Whether a Newton residual history stalled (three or more steps that reduced the residual
-    by less than a factor 0.9) before it converged: the solution it found may be another branch,
-    and the slab is retried shorter."""
-    steps = [b / a for a, b in zip(history[:-1], history[1:]) if a > 0]
+    by less than a factor 0.9, counted while it is above the round-off `floor`) before it
+    converged: the solution it found may be another branch, and the slab is retried shorter."""
+    steps = [b / a for a, b in zip(history[:-1], history[1:]) if a > floor and a > 0]
     return sum(r > 0.9 for r in steps) >= 3
