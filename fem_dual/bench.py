@@ -237,14 +237,10 @@ def table(rows: List[Dict]) -> str:
 
 
 def ratio_at(rows: List[Dict], target: float, peer: str = "DOP853") -> Optional[float]:
-    """fem-dual's fastest wall time reaching max_error <= target over the peer's (None if either
-    never reaches it)."""
-    def fastest(method):
-        times = [r["wall_s"] for r in rows if r["method"] == method and r["max_error"] <= target]
+    """fem-dual's fastest wall time (fixed slabs or --rtol) reaching max_error <= target over the
+    peer's (None if either never reaches it)."""
+    def fastest(*methods):
+        times = [r["wall_s"] for r in rows if r["method"] in methods and r["max_error"] <= target]
         return min(times) if times else math.nan
-    ours = min(fastest("fem-dual"), fastest("fem-dual-rtol"))
-    if math.isnan(fastest("fem-dual-rtol")) or math.isnan(fastest("fem-dual")):
-        ours = fastest("fem-dual") if math.isnan(fastest("fem-dual-rtol")) else \
-            fastest("fem-dual-rtol")
-    theirs = fastest(peer)
+    ours, theirs = fastest("fem-dual", "fem-dual-rtol"), fastest(peer)
     return None if math.isnan(ours) or math.isnan(theirs) else ours / theirs

@@ -28,8 +28,9 @@ from fem_dual.problem import SlabProblem
 from fem_dual.recovery import VertexSampler, VertexValues
 from fem_dual.solvers import LinearSlabSolver, solver_prefix
 from fem_dual.superposition import Superposition
-from fem_dual.stepper import (ESTIMATE_SAFETY, ROUNDOFF_REL, ErrorWeights, SlabController, SlabEstimate,
-                              initial_fraction, motion_rate)
+from fem_dual.stepper import (ESTIMATE_SAFETY, ROUNDOFF_REL, ErrorWeights, SlabEstimate,
+                              initial_fraction, motion_rate, step_factor)
+from meshes import SlabSchedule
 
 __all__ = ["RunResult", "Simulation", "AcceptedSlab", "run"]
 
@@ -416,19 +417,16 @@ def _solves(sim: Simulation) -> int:
     return len(sim.solver.iterations) - sim.tangent_solves
 
 
-def _controller(sim: Simulation, config: RunConfig) -> SlabController:
-    """Fixed slabs (cut at most max_halvings times), or adaptive lengths from a first guess."""
-    order = 2 * config.degree
+def _schedule(config: RunConfig, scene, cells: int, rate: Optional[float]) -> SlabSchedule:
+    """Fixed slabs (cut at most max_halvings times), or adaptive lengths from a first guess of
+    about one radian of the motion per cell (`rate`: the fastest mode of a linear scene)."""
     if config.rtol is None:
-        return SlabController(config.T, config.slab_count, config.max_halvings, order)
-    scene = sim.scene
-    if scene.linear:
-        rate = scene.fastest_rate(config.x0, config.v0)
-    else:
+        return SlabSchedule(config.T, config.slab_count, config.max_halvings)
+    if rate is None:
         a0 = np.linalg.solve(scene.mass_matrix(), scene.force_numpy(config.x0))
         rate = motion_rate(config.x0, config.v0, a0)
-    return SlabController(config.T, 1, ADAPTIVE_LEVELS, order,
-                          first=initial_fraction(rate, config.T, sim.cells))
+    return SlabSchedule(config.T, 1, ADAPTIVE_LEVELS,
+                        first=initial_fraction(rate, config.T, cells))
 
 
 def _judge(vals: VertexValues, companion: VertexValues, psi: Optional[np.ndarray],
@@ -482,15 +480,16 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool) -> RunResult:
     weights = ErrorWeights(config.tolerance, config.x0, config.v0) if root else None
     rate = scene.fastest_rate(config.x0, config.v0) if scene.linear else None
     bound = GrowthBound(scene, config.x0, config.v0) if (scene.linear and root) else None
-    controller = _controller(sim, config)
+    schedule = _schedule(config, scene, sim.cells, rate)
+    order = 2 * config.degree  # the local error per unit of time goes like dt^(2p)
     z = np.concatenate([config.x0, config.v0])
     d = np.zeros(2 * n)  # estimated global error of the state at the slab start
     lengths: List[float] = []
     rejected: List[Dict[str, Any]] = []
     failure: Optional[SolveError] = None
     k = 0
-    while not controller.done():
-        t0, dt = controller.current()
+    while not schedule.done():
+        t0, dt = schedule.current()
         t1 = time.perf_counter()
         estimate = None
         try:
@@ -512,7 +511,7 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool) -> RunResult:
         except SolveError as exc:
             action, err, reason = "retry", None, str(exc)
         timings["solve_s"] += time.perf_counter() - t1
-        if action == "retry" and controller.reject(err):
+        if action == "retry" and schedule.halve(step_factor(err, order)):
             rejected.append({"t0": t0, "dt": dt, "reason": reason})
             continue
         if action != "accept":
@@ -529,7 +528,7 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool) -> RunResult:
             d_next = estimate.glob[-1].copy()
         lengths.append(dt)
         z, d = bcast(comm, (z_next, d_next) if root else None)
-        controller.accept(err)
+        schedule.accept(step_factor(err, order))
         k += 1
     if bar is not None:
         bar.close()

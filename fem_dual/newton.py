@@ -18,6 +18,7 @@ from petsc4py import PETSc
 from fem_dual.errors import SolveError
 from fem_dual.problem import SlabProblem
 from fem_dual.solvers import CompiledSlab, direct_solver, petsc_options
+from fem_dual.stepper import stalled
 
 __all__ = ["NEWTON_DEFAULTS", "NewtonSlabSolver"]
 
@@ -130,7 +131,8 @@ class NewtonSlabSolver(CompiledSlab):
         if reason < 0 and self._error:
             raise SolveError(self._error)
         p = self.problem
-        size = max(float(np.abs(p.x0.value).max()), float(np.abs(p.c["M"].value @ p.v0.value).max()))
+        size = max(float(np.abs(p.x0.value).max()),
+                   float(np.abs(p.c["M"].value @ p.v0.value).max()))
         if reason < 0 and not _at_round_off(reason, history, size):
             raise SolveError(f"Newton did not converge ({_REASONS.get(reason, reason)}, residual "
                              f"{history[-1] if history else float('nan'):.3g} after "
@@ -175,6 +177,4 @@ class NewtonSlabSolver(CompiledSlab):
 
     def stalled(self) -> bool:
         """Whether the last solve's residual history stalled before it converged."""
-        from fem_dual.stepper import stalled
-
         return bool(self.histories) and stalled(self.histories[-1], self._floor)

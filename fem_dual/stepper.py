@@ -17,8 +17,8 @@ Step-size control (Hairer-Norsett-Wanner, SUNDIALS): errors are weighted by
 w = atol + rtol * scale, with scale the running maximum of |x| (for position errors) and of |v|
 (for velocity errors). A slab is accepted when its local error per unit of time,
 max |l| / w / (dt / T), is at most 1, so that the local errors of the whole run add up to at most
-the tolerance. Slab lengths are powers of two times a unit (so start times carry no round-off and
-linear scenes reuse their slab maps), chosen from err^(-1/(2p)).
+the tolerance. The next length is the slab's times step_factor(err) (about err^(-1/(2p))),
+rounded by meshes.SlabSchedule to a power of two of its unit.
 """
 from __future__ import annotations
 
@@ -28,8 +28,9 @@ from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
-__all__ = ["ErrorWeights", "SlabController", "SlabEstimate", "Tolerance", "REFUSE_RELATIVE",
-           "ACCEPT_GLOBAL", "ESTIMATE_SAFETY", "ROUNDOFF_REL", "initial_fraction", "motion_rate", "stalled"]
+__all__ = ["ErrorWeights", "step_factor", "SlabEstimate", "Tolerance", "REFUSE_RELATIVE",
+           "ACCEPT_GLOBAL", "ESTIMATE_SAFETY", "ROUNDOFF_REL", "initial_fraction",
+           "motion_rate", "stalled"]
 
 # Fixed slabs (no --rtol): the acceptance rule. A run whose estimated error exceeds this fraction
 # of the motion's scale is refused (exit 3), and a slab whose local error would make it so is
@@ -99,72 +100,14 @@ class ErrorWeights:
         return worst
 
 
-class SlabController:
-    """Slab lengths as powers of two of a unit: positions are integers, so start times carry no
-    round-off and equal lengths recur (linear scenes reuse their slab maps).
-
-    Fixed slabs: `nominal` slabs of T / slabs; a slab is cut (halved or more) at most
-    `max_halvings` times and grows back towards the nominal length when its error allows.
-    Adaptive: the nominal length is T and the unit T / 2^max_halvings.
-
-    Args:
-        T: horizon.
-        slabs: number of nominal slabs.
-        max_halvings: the smallest slab is nominal / 2^max_halvings.
-        order: the exponent q of the error per unit of time, err ~ dt^q (2p for degree p).
-        first: the first slab's length as a fraction of the nominal one (rounded down to a
-            power of two).
-    """
-
-    def __init__(self, T: float, slabs: int, max_halvings: int, order: int, first: float = 1.0):
-        self.T = T
-        self.levels = max_halvings
-        self.nominal = 2 ** max_halvings
-        self.total = slabs * self.nominal
-        self.order = order
-        self.pos = 0
-        self.length = self.nominal
-        if first < 1.0:
-            self.length = max(1, self.nominal >> min(max_halvings,
-                                                     math.ceil(-math.log2(max(first, 1e-300)))))
-
-    def done(self) -> bool:
-        return self.pos >= self.total
-
-    def current(self) -> Tuple[float, float]:
-        """(t0, dt) of the slab to solve next."""
-        length = min(self.length, self.total - self.pos)
-        return self.pos * self.T / self.total, length * self.T / self.total
-
-    def factor(self, err: float) -> float:
-        """Hairer's factor for the next length from the weighted error per unit of time."""
-        if not math.isfinite(err):
-            return MIN_SHRINK
-        if err <= 0.0:
-            return MAX_GROWTH
-        return min(MAX_GROWTH, max(MIN_SHRINK, SAFETY * err ** (-1.0 / self.order)))
-
-    def _power_of_two_at_most(self, units: float) -> int:
-        units = min(max(units, 1.0), float(self.nominal))
-        return 1 << int(math.floor(math.log2(units)))
-
-    def accept(self, err: float) -> None:
-        """Advance past the current slab; the next length from its error (never above the
-        nominal, and aligned so that the positions stay multiples of the length)."""
-        self.pos += min(self.length, self.total - self.pos)
-        length = self._power_of_two_at_most(self.length * self.factor(err))
-        while length > 1 and self.pos % length:
-            length //= 2
-        self.length = length
-
-    def reject(self, err: Optional[float] = None) -> bool:
-        """Shorten the current slab (by its error, or halve when the solve failed); False when
-        it is already at the minimum length."""
-        if self.length == 1:
-            return False
-        factor = 0.5 if err is None else min(0.5, self.factor(err))
-        self.length = self._power_of_two_at_most(self.length * factor)
-        return True
+def step_factor(err: Optional[float], order: int) -> float:
+    """Hairer's factor for the next slab length from the weighted error per unit of time
+    (err ~ dt^order); a solve that failed (err None) or a non-finite error halves."""
+    if err is None or not math.isfinite(err):
+        return 0.5 if err is None else MIN_SHRINK
+    if err <= 0.0:
+        return MAX_GROWTH
+    return min(MAX_GROWTH, max(MIN_SHRINK, SAFETY * err ** (-1.0 / order)))
 
 
 @dataclass

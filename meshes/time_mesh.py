@@ -7,6 +7,7 @@ one compiled form (and, for linear scenes with equal slabs, one factored matrix)
 from __future__ import annotations
 
 from dataclasses import dataclass
+import math
 from typing import Tuple
 
 import numpy as np
@@ -52,20 +53,33 @@ def slab_mesh(comm: MPI.Comm, cells: int) -> SlabMesh:
 
 
 class SlabSchedule:
-    """Slabs of [0, T]: nominally `slabs` equal ones; a failed slab may be halved up to
-    `max_halvings` times (minimum length T / (slabs 2^max_halvings)), and after a success the
-    length grows back towards the nominal one.
+    """Slabs of [0, T]: nominally `slabs` equal ones, each cut at most `max_halvings` times
+    (minimum length T / (slabs 2^max_halvings)). Lengths are powers of two of that minimum, so
+    equal lengths recur (linear scenes reuse their slab maps); a slab grows back after a success
+    by the factor its caller allows, never beyond the nominal length, and only to a length its
+    start position is a multiple of (so the end of [0, T] is met without an odd last slab).
 
     Positions are kept as integers in units of the minimum length, so start times carry no
     accumulated round-off and equal slabs start exactly at k T / slabs.
+
+    Args:
+        T: horizon.
+        slabs: number of nominal slabs.
+        max_halvings: how often a nominal slab may be halved.
+        first: the first slab's length as a fraction of the nominal one (rounded down to a
+            power of two).
     """
 
-    def __init__(self, T: float, slabs: int, max_halvings: int = 0):
+    def __init__(self, T: float, slabs: int, max_halvings: int = 0, first: float = 1.0):
         self.T = T
         self.nominal = 2**max_halvings
         self.total = slabs * self.nominal
         self.pos = 0
-        self.length = self.nominal
+        self.length = self._power_of_two_at_most(self.nominal * min(max(first, 0.0), 1.0))
+
+    def _power_of_two_at_most(self, units: float) -> int:
+        units = min(max(units, 1.0), float(self.nominal))
+        return 1 << int(math.floor(math.log2(units)))
 
     def done(self) -> bool:
         return self.pos >= self.total
@@ -75,13 +89,18 @@ class SlabSchedule:
         length = min(self.length, self.total - self.pos)
         return self.pos * self.T / self.total, length * self.T / self.total
 
-    def accept(self) -> None:
+    def accept(self, factor: float = 2.0) -> None:
+        """Advance past the current slab; the next one is at most `factor` times as long."""
         self.pos += min(self.length, self.total - self.pos)
-        self.length = min(2 * self.length, self.nominal)
+        length = self._power_of_two_at_most(self.length * factor)
+        while length > 1 and self.pos % length:
+            length //= 2
+        self.length = length
 
-    def halve(self) -> bool:
-        """Halve the current slab; False when it is already at the minimum length."""
+    def halve(self, factor: float = 0.5) -> bool:
+        """Shorten the current slab to at most `factor` (at most 1/2) of its length; False when
+        it is already at the minimum length."""
         if self.length == 1:
             return False
-        self.length //= 2
+        self.length = self._power_of_two_at_most(self.length * min(factor, 0.5))
         return True

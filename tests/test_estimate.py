@@ -12,7 +12,8 @@ import pytest
 
 from fem_dual import RunConfig, SolveError, run
 from fem_dual.cli import main
-from fem_dual.stepper import ErrorWeights, SlabController, Tolerance, stalled
+from fem_dual.stepper import ErrorWeights, Tolerance, stalled, step_factor
+from meshes import SlabSchedule
 
 JUDGED_ABOVE = 1e-11  # below this the reference's own error and round-off dominate
 
@@ -177,16 +178,16 @@ def test_failed_attempts_count_in_the_run_time():
 
 # -- the machinery ------------------------------------------------------------------------------
 def test_controller_lengths_are_aligned_powers_of_two():
-    c = SlabController(T=1.0, slabs=1, max_halvings=10, order=4, first=0.3)
+    c = SlabSchedule(T=1.0, slabs=1, max_halvings=10, first=0.3)
     assert c.current() == (0.0, 0.25)
     seen = []
     for err in (0.01, 5.0, 0.5, 1e-6, 1e-6, 1e-6, 1e-6):
         t0, dt = c.current()
         if err > 1:
-            assert c.reject(err)
+            assert c.halve(step_factor(err, 4))
             continue
         seen.append((t0, dt))
-        c.accept(err)
+        c.accept(step_factor(err, 4))
         if c.done():
             break
     for t0, dt in seen:
@@ -194,10 +195,17 @@ def test_controller_lengths_are_aligned_powers_of_two():
     assert sum(dt for _, dt in seen) == pytest.approx(c.pos / c.total)
 
 
+def test_step_factor():
+    assert step_factor(None, 4) == 0.5 and step_factor(float("nan"), 4) == 0.125
+    assert step_factor(0.0, 4) == 4.0 and step_factor(1e-12, 4) == 4.0
+    assert step_factor(1.0, 4) == pytest.approx(0.9) and step_factor(1e12, 4) == 0.125
+    assert step_factor(16.0, 4) == pytest.approx(0.45)
+
+
 def test_controller_reject_stops_at_the_minimum():
-    c = SlabController(T=2.0, slabs=4, max_halvings=2, order=4)
+    c = SlabSchedule(T=2.0, slabs=4, max_halvings=2)
     assert c.current() == (0.0, 0.5)
-    assert c.reject() and c.reject() and not c.reject()
+    assert c.halve() and c.halve() and not c.halve()
     assert c.current() == (0.0, 0.125)
 
 
