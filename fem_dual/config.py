@@ -12,7 +12,7 @@ from fem_dual.errors import InputError
 from fem_dual.recovery import RECOVERIES
 from fem_dual.scenes import Scene, get_scene
 from fem_dual.scenes.base import parse_number, parse_vector
-from fem_dual.stepper import Tolerance
+from fem_dual.stepper import ROUNDOFF_REL, Tolerance
 
 __all__ = ["RunConfig", "MAX_VERTICES", "MAX_DEGREE", "STAGING_LIMIT"]
 
@@ -45,10 +45,14 @@ def _whole_number(name: str, value: Number, minimum: int = 1) -> int:
 
 
 def _tolerance(name: str, value: Number) -> float:
-    """A tolerance: finite, positive and below 1."""
+    """A tolerance: finite, positive and below 1; a relative one no finer than the error
+    estimate resolves (ROUNDOFF_REL of the motion's scale)."""
     tol = parse_number(name, value)
     if not 0.0 < tol < 1.0:
         raise InputError(f"{name}={value!r} must lie between 0 and 1 (exclusive)")
+    if name == "rtol" and tol < ROUNDOFF_REL:
+        raise InputError(f"rtol={value!r} is below what the error estimate resolves "
+                         f"({ROUNDOFF_REL:g} of the motion's scale)")
     return tol
 
 

@@ -294,6 +294,24 @@ class Simulation:
             return None
         return (np.hstack([moved.x, moved.v]) - np.hstack([values.x, values.v])) / eps
 
+    def algebraic_error(self, z0: np.ndarray,
+                        values: Optional[VertexValues]) -> Optional[np.ndarray]:
+        """How far the vertex values (vertices, 2n) would still move with one more Newton step
+        (rank 0; None for linear slabs, whose solves are checked by their true residual). It
+        joins the discretisation error in the estimate, so a Newton stopped early (by loosened
+        solver options) cannot pass as converged: the companion, stopped by the same test,
+        would not show it. Collective; call it right after the slab was solved."""
+        if self.scene.linear:
+            return None
+        self.solver.newton_step()
+        try:
+            moved = self.sampler()
+        finally:
+            self.solver.restore(z0)
+        if moved is None:
+            return None
+        return np.hstack([moved.x - values.x, moved.v - values.v])
+
     def verify(self) -> Optional[str]:
         """Why the last slab solve cannot be trusted although it converged, or None."""
         stalled = getattr(self.solver, "stalled", None)
@@ -417,35 +435,55 @@ def _solves(sim: Simulation) -> int:
     return len(sim.solver.iterations) - sim.tangent_solves
 
 
-def _schedule(config: RunConfig, scene, cells: int, rate: Optional[float]) -> SlabSchedule:
+def _start_rate(scene, x0: np.ndarray, v0: np.ndarray) -> float:
+    """|z'| / |z| at the start (motion_rate), from the scene's acceleration there."""
+    if scene.linear:
+        a0 = (scene.first_order_matrix() @ np.concatenate([x0, v0]))[scene.n:]
+    else:
+        a0 = np.linalg.solve(scene.mass_matrix(), scene.force_numpy(x0))
+    return motion_rate(x0, v0, a0)
+
+
+def _schedule(config: RunConfig, cells: int, rate: float) -> SlabSchedule:
     """Fixed slabs (cut at most max_halvings times), or adaptive lengths from a first guess of
-    about one radian of the motion per cell (`rate`: the fastest mode of a linear scene)."""
+    about one radian per cell (`rate`: the fastest mode of a linear scene, the start's rate of
+    a nonlinear one)."""
     if config.rtol is None:
         return SlabSchedule(config.T, config.slab_count, config.max_halvings)
-    if rate is None:
-        a0 = np.linalg.solve(scene.mass_matrix(), scene.force_numpy(config.x0))
-        rate = motion_rate(config.x0, config.v0, a0)
     return SlabSchedule(config.T, 1, ADAPTIVE_LEVELS,
                         first=initial_fraction(rate, config.T, cells))
 
 
-def _judge(vals: VertexValues, companion: VertexValues, psi: Optional[np.ndarray],
-           weights: ErrorWeights, bound: Optional[GrowthBound], t0: float, dt: float,
+def _above(e: np.ndarray, floor: Tuple[float, float]) -> np.ndarray:
+    """|e| less the round-off floor of its part (positions, velocities), at least 0."""
+    n = e.shape[1] // 2
+    return np.hstack([np.maximum(np.abs(e[:, :n]) - floor[0], 0.0),
+                      np.maximum(np.abs(e[:, n:]) - floor[1], 0.0)])
+
+
+def _judge(vals: VertexValues, companion: VertexValues, algebraic: Optional[np.ndarray],
+           psi: Optional[np.ndarray], weights: ErrorWeights, bound: Optional[GrowthBound],
+           t0: float, dt: float,
            T: float) -> Tuple[str, Optional[float], str, Optional[SlabEstimate]]:
     """(action, weighted local error, reason, estimate) for a solved slab on rank 0: "accept",
     "retry" (shorter) or "refuse" (the run cannot vouch for its answer any more)."""
     problem_text = _insane(vals, bound, t0 + dt)
     if problem_text:
         return "retry", None, problem_text, None
-    local = ESTIMATE_SAFETY * np.hstack([companion.x - vals.x, companion.v - vals.v])
+    local = np.hstack([companion.x - vals.x, companion.v - vals.v])
+    if algebraic is not None:  # the answer's own Newton error (the companion's cancels it)
+        local = local + algebraic
+    local = ESTIMATE_SAFETY * local
     glob = local if psi is None else local + psi
     if not (np.isfinite(local).all() and np.isfinite(glob).all()):
         return "retry", None, "the error estimate is not finite", None
     scales = weights.with_motion(vals.x, vals.v)
-    err_local = weights.norm(local, scales) / (dt / T)
+    # local errors at the round-off floor are not resolved: counted as such they would grow per
+    # unit of time as slabs shrink and drive the lengths down to the minimum
+    floor = (ROUNDOFF_REL * scales[0], ROUNDOFF_REL * scales[1])
+    err_local = weights.norm(_above(local, floor), scales) / (dt / T)
     err_global = weights.norm(glob, scales)
-    est = SlabEstimate(t0, dt, local, glob, err_local, err_global,
-                       (ROUNDOFF_REL * scales[0], ROUNDOFF_REL * scales[1]))
+    est = SlabEstimate(t0, dt, local, glob, err_local, err_global, floor)
     tol = weights.tol
     what = f"rtol={tol.rtol:g}, atol={tol.atol:g}" if tol.adaptive else \
         f"{tol.rtol:g} of the motion's scale"
@@ -477,10 +515,11 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool) -> RunResult:
     timings = {"compile_s": sim.setup_s if sim._fresh else 0.0, "solve_s": 0.0,
                "estimate_s": 0.0, "recovery_s": 0.0, "output_s": 0.0}
     sim._fresh = False
-    weights = ErrorWeights(config.tolerance, config.x0, config.v0) if root else None
+    start_rate = _start_rate(scene, config.x0, config.v0)
+    weights = ErrorWeights(config.tolerance, config.x0, config.v0, start_rate) if root else None
     rate = scene.fastest_rate(config.x0, config.v0) if scene.linear else None
     bound = GrowthBound(scene, config.x0, config.v0) if (scene.linear and root) else None
-    schedule = _schedule(config, scene, sim.cells, rate)
+    schedule = _schedule(config, sim.cells, start_rate if rate is None else rate)
     order = 2 * config.degree  # the local error per unit of time goes like dt^(2p)
     z = np.concatenate([config.x0, config.v0])
     d = np.zeros(2 * n)  # estimated global error of the state at the slab start
@@ -499,13 +538,14 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool) -> RunResult:
             if suspicious:
                 raise SolveError(suspicious)
             t2 = time.perf_counter()
+            algebraic = sim.algebraic_error(z, vals)
             psi = sim.tangent(z, d, t0, dt, vals)
             companion = sim.companion.solve_slab(z, t0, dt)
             timings["estimate_s"] += time.perf_counter() - t2
             verdict = None
             if root:
-                action, err, reason, estimate = _judge(vals, companion, psi, weights, bound,
-                                                       t0, dt, config.T)
+                action, err, reason, estimate = _judge(vals, companion, algebraic, psi,
+                                                       weights, bound, t0, dt, config.T)
                 verdict = (action, err, reason)
             action, err, reason = bcast(comm, verdict)
         except SolveError as exc:

@@ -7,6 +7,7 @@ Options are a dict applied under a per-solver prefix (`dual_<scene>_`) and remov
 """
 from __future__ import annotations
 
+import os
 import time
 from contextlib import contextmanager
 from typing import Dict, Iterator, Mapping, Optional
@@ -15,7 +16,7 @@ from dolfinx import fem
 from dolfinx.fem import petsc as fem_petsc
 from petsc4py import PETSc
 
-from fem_dual.errors import SolveError
+from fem_dual.errors import InputError, SolveError
 from fem_dual.problem import SlabProblem
 
 __all__ = ["LINEAR_DEFAULTS", "direct_solver", "solver_prefix", "petsc_options", "CompiledSlab",
@@ -41,7 +42,12 @@ def solver_prefix(scene_name: str) -> str:
 @contextmanager
 def petsc_options(prefix: str, defaults: Mapping[str, str],
                   overrides: Optional[Mapping[str, str]] = None) -> Iterator[None]:
-    """Push `defaults` (unless already set) and `overrides` under `prefix`, then remove them."""
+    """Push `defaults` (unless already set) and `overrides` under `prefix`, then remove them.
+
+    Raises:
+        InputError: PETSc rejected the options while they were set (an unknown solver or
+            preconditioner type, a value of the wrong kind), naming the options given.
+    """
     opts = PETSc.Options()
     pushed = []
     for key, value in {**defaults, **(overrides or {})}.items():
@@ -51,6 +57,11 @@ def petsc_options(prefix: str, defaults: Mapping[str, str],
             pushed.append(full)
     try:
         yield
+    except PETSc.Error as exc:
+        given = ", ".join(f"{k}={v}" for k, v in (overrides or {}).items()) or "none given"
+        raise InputError(f"PETSc rejected the solver options under {prefix} (PETSc error "
+                         f"{exc.ierr}; options: {given}; PETSC_OPTIONS="
+                         f"{os.environ.get('PETSC_OPTIONS', '')!r})") from None
     finally:
         for full in pushed:
             opts.delValue(full)

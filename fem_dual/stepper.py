@@ -72,21 +72,31 @@ class Tolerance:
 
 class ErrorWeights:
     """w_i = atol + rtol * scale_i; scale = running max of |x| (position components) and |v|
-    (velocity components) over the motion so far."""
+    (velocity components) over the motion so far, starting from the start state and its rate
+    (`motion_rate`)."""
 
-    def __init__(self, tol: Tolerance, x0: np.ndarray, v0: np.ndarray):
+    def __init__(self, tol: Tolerance, x0: np.ndarray, v0: np.ndarray, rate: float = 0.0):
         self.tol = tol
         self.n = len(x0)
-        self.scale_x = float(np.abs(x0).max(initial=0.0))
-        self.scale_v = float(np.abs(v0).max(initial=0.0))
+        nx, nv = float(np.abs(x0).max(initial=0.0)), float(np.abs(v0).max(initial=0.0))
+        # the motion's own rate relates the parts from the start: a particle released at rest
+        # has |v| ~ rate |x| to come, not the |v| ~ 0 of its first short slab
+        self.scale_x = max(nx, nv / rate) if rate > 0 else nx
+        self.scale_v = max(nv, rate * nx)
 
-    def with_motion(self, x: np.ndarray, v: np.ndarray) -> Tuple[float, float]:
-        """The scales including the values (vertices, n) of a slab (not yet recorded)."""
+    def _seen(self, x: np.ndarray, v: np.ndarray) -> Tuple[float, float]:
         return (max(self.scale_x, float(np.abs(x).max(initial=0.0))),
                 max(self.scale_v, float(np.abs(v).max(initial=0.0))))
 
+    def with_motion(self, x: np.ndarray, v: np.ndarray) -> Tuple[float, float]:
+        """The scales including the values (vertices, n) of a slab (not yet recorded). A part
+        that has not moved at all (v of an equilibrium) takes the other part's scale: its
+        round-off is measured against the size of the state."""
+        sx, sv = self._seen(x, v)
+        return (sx or sv, sv or sx)
+
     def record(self, x: np.ndarray, v: np.ndarray) -> None:
-        self.scale_x, self.scale_v = self.with_motion(x, v)
+        self.scale_x, self.scale_v = self._seen(x, v)
 
     def norm(self, e: np.ndarray, scales: Tuple[float, float]) -> float:
         """max_i |e_i| / w_i over the rows of e (vertices, 2n); 0 for a zero error."""

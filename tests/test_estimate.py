@@ -148,7 +148,8 @@ def test_rtol_lengths_follow_the_tolerance():
 @pytest.mark.parametrize("argv, named", [
     (["--rtol", "0"], "rtol='0'"), (["--rtol", "1"], "rtol='1'"),
     (["--rtol", "nan"], "rtol='nan'"), (["--rtol", "-1e-6"], "rtol='-1e-6'"),
-    (["--rtol", "abc"], "rtol='abc'"), (["--rtol", "1e-6", "--atol", "inf"], "atol='inf'"),
+    (["--rtol", "abc"], "rtol='abc'"), (["--rtol", "1e-13"], "rtol='1e-13' is below"),
+    (["--rtol", "1e-6", "--atol", "inf"], "atol='inf'"),
     (["--atol", "1e-9"], "atol='1e-9' needs rtol"),
     (["--rtol", "1e-6", "--slabs", "4"], "contradict"),
 ])
@@ -221,3 +222,50 @@ def test_weights_are_relative_to_the_running_scale():
 def test_stall_detection():
     assert not stalled([1.0, 1e-2, 1e-6, 1e-13])
     assert stalled([1.0, 0.19, 0.19, 0.19, 0.18, 1e-3, 1e-8, 1e-14])
+
+
+# -- found by a hostile run (hostile-user helper) -----------------------------------------------
+@pytest.mark.parametrize("scene, option", [
+    ("curl2d", {"snes_stol": "0.5"}), ("curl2d-lifted", {"snes_stol": "0.5"}),
+    ("curl3d", {"snes_rtol": "1e-2"}), ("curl3d", {"snes_type": "ksponly"}),
+    ("curl2d", {"snes_max_it": "1"}),
+])
+def test_loosened_newton_options_cannot_hide_the_error(scene, option):
+    """Newton stopped early by user options used to pass with an estimate 50x to 1e5x below the
+    true error (the companion stopped by the same test): now the answer's own Newton error (one
+    more Newton step) is part of the estimate.""" 
+    try:
+        r = run(RunConfig.create(scene, petsc=option))
+    except SolveError as exc:
+        assert "slab" in str(exc)
+        return
+    assert r.error_estimate >= _actual(r)
+
+
+@pytest.mark.serial
+@pytest.mark.parametrize("option", ["ksp_type=nonsense", "pc_type=nonsense"])
+def test_unknown_petsc_types_are_bad_input(option, capsys):
+    for scene in ("ziegler", "curl3d"):
+        assert main(["run", scene, "--petsc-option", option]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and option in err, err
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("rtol", [1e-10, 1e-11])
+def test_tight_rtol_on_a_linear_scene(rtol):
+    """Round-off-level local errors used to drive the slabs to 1e-11 and a refusal."""
+    r = run(RunConfig.create("ziegler", rtol=rtol, degree=6, cells=4))
+    assert r.error["x_max"] <= rtol * r.tolerance["scale_x"]
+    assert min(r.slab_lengths) > 1e-3
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("scene, params, x0", [("curl3d", {}, "1,0,0"), ("curl2d", {}, "0,1"),
+                                               ("curl2d", {"k": "0"}, None),
+                                               ("curl3d", {}, "0,0,0")])
+def test_equilibria_are_answered(scene, params, x0):
+    """A start at rest in an equilibrium (F = 0) used to stop with "Newton did not converge
+    (residual 0 after 0 iterations)"."""
+    r = run(RunConfig.create(scene, params, x0=x0))
+    assert r.status == "ok" and _actual(r) <= 1e-14 and r.error_estimate <= 1e-11

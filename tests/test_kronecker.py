@@ -1,5 +1,7 @@
 """The Kronecker (time x space) path of linear scenes: matrix-free CG with the
 fast-diagonalisation preconditioner (issue 7, columns of many links)."""
+import re
+
 import numpy as np
 import pytest
 from mpi4py import MPI
@@ -91,12 +93,19 @@ def test_a_long_scaled_column_converges_to_the_matrix_exponential():
 @pytest.mark.mpi
 def test_unresolved_modes_that_the_slab_map_amplifies_stop_the_run():
     """The same column with slabs far too long for its fastest modes: before, the noise grew
-    to 1e20 with status ok; now exit 3 naming the cause."""
+    to 1e20 with status ok. Now either exit 3 naming the cause, or the slabs are shortened until
+    the estimate vouches for the answer, and then it is right."""
     scene, x0 = _scaled_column(40, 9.5)
     config = RunConfig.create(scene, T=2.5, slabs=20, cells=4, degree=4, x0=x0,
                               v0=np.zeros(40))
-    with pytest.raises(SolveError, match="modes the slabs do not resolve|estimated local error"):
-        run(config)
+    try:
+        r = run(config)
+    except SolveError as exc:
+        assert re.search("modes the slabs do not resolve|estimated local error", str(exc))
+        return
+    assert r.solver["rejected_slabs"] > 0 and len(r.slab_lengths) > 20
+    actual = max(r.error["x_max"], r.error["v_max"])
+    assert actual <= 1e-3 * r.tolerance["scale_x"] and r.error_estimate >= actual
 
 
 def test_kronecker_input_errors(capsys):
