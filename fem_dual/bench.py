@@ -32,7 +32,7 @@ from fem_dual.scenes import Scene
 __all__ = ["COLUMNS", "bench", "write_csv", "read_csv", "plot", "table", "ratio_at"]
 
 COLUMNS = ["method", "degree", "cells", "slabs", "rtol", "max_error", "final_error", "wall_s",
-           "compile_s", "samples", "estimate"]
+           "compile_s", "samples", "estimate", "slabs_solved"]
 ADAPTIVE_CELLS = 4  # cells per slab of the fem-dual --rtol rows
 TOLERANCES = {"RK45": [1e-4, 1e-6, 1e-8, 1e-10], "DOP853": [1e-6, 1e-8, 1e-10, 1e-12],
               "DOP853-f": [1e-6, 1e-8, 1e-10, 1e-12], "Radau": [1e-4, 1e-6, 1e-8]}
@@ -61,7 +61,9 @@ def _fem_row(sim: Simulation, config: RunConfig, repeats: int, compile_s: float,
     x_ref, v_ref = flow(result.t)
     err = _state_error(result.x, result.v, x_ref, v_ref)
     return {"method": "fem-dual" if config.rtol is None else "fem-dual-rtol",
-            "degree": config.degree, "cells": config.cells, "slabs": len(result.slab_lengths),
+            "degree": config.degree, "cells": config.cells,
+            "slabs": config.slabs if config.rtol is None else len(result.slab_lengths),
+            "slabs_solved": len(result.slab_lengths),
             "rtol": config.rtol, "max_error": float(err.max()), "final_error": float(err[-1]),
             "wall_s": float(np.median(walls)), "compile_s": compile_s,
             "samples": len(result.t), "estimate": result.error_estimate, "_t": result.t}
@@ -145,7 +147,7 @@ def _ode_rows(scene: Scene, T: float, x0: np.ndarray, v0: np.ndarray, t: np.ndar
             rows.append({"method": method, "degree": None, "cells": None, "slabs": None,
                          "rtol": tol, "max_error": float(err.max()), "final_error": float(err[-1]),
                          "wall_s": float(np.median(walls)), "compile_s": 0.0, "samples": len(t),
-                         "estimate": None})
+                         "estimate": None, "slabs_solved": None})
     return rows
 
 
@@ -186,7 +188,7 @@ def read_csv(path: Path) -> List[Dict]:
                     row[key] = None
                 elif key == "method":
                     row[key] = text
-                elif key in ("degree", "cells", "slabs", "samples"):
+                elif key in ("degree", "cells", "slabs", "samples", "slabs_solved"):
                     row[key] = int(text)
                 else:
                     row[key] = float(text)
@@ -200,7 +202,8 @@ def plot(rows: List[Dict], path: Path, title: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7, 5))
+    fig, ax = plt.subplots(figsize=(10, 5.5))
+    ax.set_prop_cycle(color=plt.get_cmap("tab20").colors)  # 20 colours: no two curves alike
     curves: Dict[str, List[Dict]] = {}
     multi = len({r["slabs"] for r in rows if r["method"] == "fem-dual"}) > 1
     for row in rows:
@@ -221,7 +224,7 @@ def plot(rows: List[Dict], path: Path, title: str) -> None:
     ax.set_ylabel("max error over the sample times")
     ax.set_title(title)
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend()
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize="small")  # covers no curve
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
