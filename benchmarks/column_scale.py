@@ -44,6 +44,8 @@ def main(argv=None) -> int:
                     help="more slabs until the fastest mode turns at most this much per cell")
     ap.add_argument("--cells", type=int, default=4)
     ap.add_argument("--degree", type=int, default=4)
+    ap.add_argument("--base", default="auto", help="base state of H (auto, zero, start)")
+    ap.add_argument("--coordinates", default="auto", help="auto, modal, physical")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     comm = MPI.COMM_WORLD
@@ -62,7 +64,8 @@ def main(argv=None) -> int:
         fastest = scene.fastest_rate()
         slabs = max(slabs, int(np.ceil(fastest * T / (args.max_radians_per_cell * args.cells))))
     config = RunConfig.create(scene, T=T, slabs=slabs, cells=args.cells, degree=args.degree,
-                              x0=x0, v0=np.zeros(args.links), assembly="kronecker")
+                              x0=x0, v0=np.zeros(args.links), assembly="kronecker",
+                              base=args.base, coordinates=args.coordinates)
     prep_s = time.perf_counter() - tic
     sim = Simulation.for_config(config, comm)
     result = sim.run(config)
@@ -76,7 +79,11 @@ def main(argv=None) -> int:
            "run_s": result.timings["total_s"] - result.timings["reference_s"],
            "setup_s": result.timings["compile_s"], "prepare_s": prep_s,
            "peak_rss_mb": rss, "error_x_max": result.error["x_max"],
-           "relative_error": result.error["x_max"] / np.abs(x0).max()}
+           "relative_error": result.error["x_max"] / np.abs(x0).max(),
+           "error_v_max": result.error["v_max"],
+           "relative_error_v": result.error["v_max"] / np.abs(result.v).max(),
+           "error_estimate": result.error_estimate, "base": config.base_state,
+           "coordinates": "modal" if config.modal else "physical"}
     if args.json:
         print0(comm, json.dumps(out))
     else:

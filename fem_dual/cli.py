@@ -78,6 +78,14 @@ def build_parser() -> argparse.ArgumentParser:
                    "within atol + rtol * scale (scale: the largest |x|, |v| so far); excludes "
                    "--slabs")
     r.add_argument("--atol", help="absolute tolerance with --rtol (default 0)")
+    r.add_argument("--base", default="auto", help="base state of H on each slab: zero "
+                   "(residual-free for linear scenes: unresolved fast modes are damped), start "
+                   "(the slab's start state held constant), auto (default) = zero for linear "
+                   "scenes with energy weights (stiff ones), start otherwise")
+    r.add_argument("--coordinates", default="auto", help="linear scenes: modal (solve in the "
+                   "modes of (K, M): resolved modes keep order 2p under a follower load, "
+                   "unresolved ones are damped), physical, auto (default) = modal on the zero "
+                   "base when the modes are well conditioned")
     r.add_argument("--out", help="write XDMF output into this directory")
     r.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     r.add_argument("--petsc-option", action="append", default=[], metavar="KEY=VALUE",
@@ -283,7 +291,8 @@ def main(argv: Optional[Sequence[str]] = None, comm: MPI.Comm = MPI.COMM_WORLD) 
                                   out=args.out, petsc=petsc, max_halvings=args.max_halvings,
                                   superpose=args.superpose, staging=args.staging,
                                   recovery=args.recovery, assembly=args.assembly,
-                                  rtol=args.rtol, atol=args.atol)
+                                  rtol=args.rtol, atol=args.atol, base=args.base,
+                                  coordinates=args.coordinates)
         result = run(config, comm, progress=not args.json and sys.stderr.isatty())
     except InputError as exc:
         print0(comm, f"fem-dual: error: {_one_line(exc)}", file=sys.stderr)

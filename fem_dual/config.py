@@ -1,6 +1,7 @@
 """A run's configuration, validated in one place before anything is computed or written."""
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -9,6 +10,8 @@ from typing import Dict, Mapping, Optional, Sequence, Union
 import numpy as np
 
 from fem_dual.errors import InputError
+from fem_dual.modal import modal_obstacle
+from fem_dual.problem import BASES
 from fem_dual.recovery import RECOVERIES
 from fem_dual.scenes import Scene, get_scene
 from fem_dual.scenes.base import parse_number, parse_vector
@@ -26,6 +29,8 @@ MAX_DEGREE = 10  # equispaced Lagrange bases beyond this are too ill-conditioned
 STAGING_LIMIT = 800
 STAGING = ("auto", "off")
 ASSEMBLY = ("auto", "forms", "kronecker")
+COORDINATES = ("auto", "physical", "modal")
+MODAL_MAX_DOFS = 2000  # auto: the O(n^3) modes of larger systems cost more than they save
 KRONECKER_MIN_DOFS = 5  # auto: linear scenes from this many dofs take the Kronecker path
 
 Number = Union[int, float, str]
@@ -76,6 +81,31 @@ class RunConfig:
     assembly: str = "auto"  # linear scenes: UFL forms + LU, or Kronecker sums + CG
     rtol: Optional[float] = None  # tolerance-driven slab lengths (None: fixed slabs)
     atol: float = 0.0
+    base: str = "auto"  # H's base state per slab: start, zero, auto (see base_state)
+    coordinates: str = "auto"  # linear scenes: physical, modal, auto (see modal)
+
+    @property
+    def base_state(self) -> str:
+        """The base state in use: `base`, with auto resolved (zero for linear scenes, where it
+        is residual-free and damps what the slabs do not resolve; start for nonlinear ones)."""
+        if self.base != "auto":
+            return self.base
+        return "zero" if self._stiff_linear else "start"
+
+    @property
+    def _stiff_linear(self) -> bool:
+        """A linear scene with energy weights (its frequencies spread: the auto weights of the
+        conditioning rule, or asked for), where the zero base state is stable for every mode."""
+        return self.scene.linear and self.scene.weighting() == "energy"
+
+    @functools.cached_property
+    def modal(self) -> bool:
+        """Whether the slabs are solved in modal coordinates (fem_dual.modal): asked for, or
+        auto for a stiff linear scene on the zero base whose modes allow it."""
+        if self.coordinates != "auto":
+            return self.coordinates == "modal"
+        return (self._stiff_linear and self.base_state == "zero"
+                and self.scene.n <= MODAL_MAX_DOFS and modal_obstacle(self.scene) is None)
 
     @property
     def tolerance(self) -> Tolerance:
@@ -119,7 +149,8 @@ class RunConfig:
                petsc: Optional[Mapping[str, str]] = None,
                max_halvings: Number = 6, superpose: str = "auto", staging: str = "auto",
                recovery: str = "momentum", assembly: str = "auto",
-               rtol: Optional[Number] = None, atol: Optional[Number] = None) -> "RunConfig":
+               rtol: Optional[Number] = None, atol: Optional[Number] = None,
+               base: str = "auto", coordinates: str = "auto") -> "RunConfig":
         """Validate every input; raises InputError naming the first bad value.
 
         With `rtol` (and optionally `atol`) the slab lengths are chosen by the error estimate
@@ -168,6 +199,18 @@ class RunConfig:
         if assembly == "kronecker" and recovery != "momentum":
             raise InputError("assembly=kronecker recovers the motion from the momenta only "
                              f"(recovery={recovery!r})")
+        if base not in ("auto",) + BASES:
+            raise InputError(f"base={base!r} is not one of auto, {', '.join(BASES)}")
+        if coordinates not in COORDINATES:
+            raise InputError(f"coordinates={coordinates!r} is not one of "
+                             f"{', '.join(COORDINATES)}")
+        if coordinates == "modal":
+            if not scene.linear:
+                raise InputError(f"coordinates=modal needs a linear scene ({scene.name} is "
+                                 "nonlinear)")
+            obstacle = modal_obstacle(scene)
+            if obstacle:
+                raise InputError(f"coordinates=modal: {obstacle}")
         rtol_ = None if rtol is None else _tolerance("rtol", rtol)
         if atol is not None and rtol is None:
             raise InputError(f"atol={atol!r} needs rtol (atol alone sets no tolerance)")
@@ -177,4 +220,4 @@ class RunConfig:
                              "chooses the slab lengths")
         return cls(scene, T_value, cells_, degree_, slabs_, x0_, v0_,
                    None if out is None else Path(out), petsc_, halvings, superpose, staging,
-                   recovery, assembly, rtol_, atol_)
+                   recovery, assembly, rtol_, atol_, base, coordinates)

@@ -40,6 +40,7 @@ from fem_dual.superposition import stable_or_raise
 __all__ = ["TimeMatrices", "KroneckerProblem", "KroneckerSolver", "KroneckerSampler",
            "KroneckerSuperposition", "KRONECKER_DEFAULTS"]
 
+INVERSE_ENTRIES = 4_000_000  # the preconditioner keeps explicit block inverses up to 32 MB
 KRONECKER_DEFAULTS: Dict[str, str] = {"ksp_type": "cg", "ksp_rtol": "1e-13", "ksp_atol": "1e-300",
                                       "ksp_max_it": "2000"}
 
@@ -91,8 +92,9 @@ class KroneckerProblem:
         def __init__(self, cells: int):
             self.cells = cells
 
-    def __init__(self, scene, degree: int, cells: int, comm: MPI.Comm = MPI.COMM_WORLD):
-        self.scene, self.degree, self.comm = scene, degree, comm
+    def __init__(self, scene, degree: int, cells: int, comm: MPI.Comm = MPI.COMM_WORLD,
+                 base: str = "start"):
+        self.scene, self.degree, self.comm, self.base = scene, degree, comm, base
         self.n = n = scene.n
         self.mesh = self._Mesh(cells)
         self.time = TimeMatrices(degree, cells)
@@ -106,7 +108,7 @@ class KroneckerProblem:
         self.mine = np.arange(self.offsets[comm.rank], self.offsets[comm.rank + 1])
         self.set_scene_constants(scene)
         self.dt, self.t0 = 1.0, 0.0
-        self.x0 = self.v0 = np.zeros(n)
+        self.x0 = self.v0 = self.xbar = self.vbar = np.zeros(n)
         self.W = np.zeros((size, 2 * n))  # the whole dual state (xi | eta), on every rank
 
     def set_scene_constants(self, scene) -> None:
@@ -120,6 +122,16 @@ class KroneckerProblem:
                   "KAiKt": K @ Ai @ K.T, "DBi": D @ Bi, "DBiDt": D @ Bi @ D.T,
                   "DBiM": D @ Bi @ M, "MBi": M @ Bi, "MBiDt": M @ Bi @ D.T,
                   "MBiM": M @ Bi @ M}
+        self._mass = None if np.array_equal(M, np.eye(self.n)) else sla.cho_factor(M)
+        # right factors of the residual's products, for all columns and for this rank's own
+        self._right = {name: (_RightFactor(value.T, slice(None)), _RightFactor(value.T, self.mine))
+                       for name, value in self.c.items()}
+
+    def velocity(self, mv: np.ndarray) -> np.ndarray:
+        """v from rows of momenta M v (a Cholesky factor of M kept per scene; none for M = I)."""
+        if self._mass is None:
+            return mv
+        return sla.cho_solve(self._mass, mv.T).T
 
     @property
     def num_dofs(self) -> int:
@@ -127,6 +139,8 @@ class KroneckerProblem:
 
     def set_slab(self, x0: np.ndarray, v0: np.ndarray, dt: float, t0: float = 0.0) -> None:
         self.x0, self.v0 = np.asarray(x0, float), np.asarray(v0, float)
+        if self.base == "start":
+            self.xbar, self.vbar = self.x0, self.v0
         self.dt, self.t0 = float(dt), float(t0)
         self.W[:] = 0.0
 
@@ -135,12 +149,13 @@ class KroneckerProblem:
         """dS for the trial values (Wxi, Weta) tested with the rows of the time matrices T
         (global or per cell); `affine` adds the base-state terms; only the output components
         `cols` (default all). `apply(X, W)` multiplies a time matrix with W."""
-        c, dt = self.c, self.dt
-        cols = slice(None) if cols is None else cols
+        dt = self.dt
+        own = cols is not None  # the operator asks for this rank's columns, the sampler for all
         apply = apply or (lambda X, W: X @ W)
 
         def right(X, W, name):
-            return apply(T[X], W) @ c[name].T[:, cols]
+            factor = self._right[name][own]
+            return 0.0 if factor.zero else factor(apply(T[X], W))
 
         r_xi = (-right("C", Weta, "AiKt") + right("S", Wxi, "Ai") / dt
                 - dt * right("Mm", Weta, "BiDt") + dt * right("Mm", Wxi, "Bi")
@@ -150,19 +165,39 @@ class KroneckerProblem:
                  - right("G", Weta, "DBiM") - right("C", Weta, "MBiDt")
                  + right("C", Wxi, "MBi") + right("S", Weta, "MBiM") / dt)
         if affine:
-            b_xi, b_eta = self.base_terms(T, cols)
+            b_xi, b_eta = self.base_terms(T, slice(None) if cols is None else cols)
             r_xi, r_eta = r_xi + b_xi, r_eta + b_eta
         return r_xi, r_eta
 
     def base_terms(self, T: Mapping, cols=slice(None)) -> Tuple[np.ndarray, np.ndarray]:
         """The part of dS that the base state (xbar, vbar) contributes: dS at the zero dual
         state, without the initial conditions."""
-        c, dt, xbar, vbar = self.c, self.dt, self.x0, self.v0
+        c, dt, xbar, vbar = self.c, self.dt, self.xbar, self.vbar
         e, m = T["e"], T["m"]
         b_xi = -np.multiply.outer(e, xbar[cols]) - dt * np.multiply.outer(m, vbar[cols])
         b_eta = (dt * np.multiply.outer(m, (c["K"] @ xbar + c["D"] @ vbar)[cols])
                  - np.multiply.outer(e, (c["M"] @ vbar)[cols]))
         return b_xi, b_eta
+
+
+class _RightFactor:
+    """Y @ C[:, cols] for a coefficient matrix C of the slab problem, at the cost its structure
+    allows: nothing when C is zero (no damping), a scaling of Y's own columns when C is diagonal
+    (modal coordinates), a dense product otherwise."""
+
+    def __init__(self, C: np.ndarray, cols):
+        self.zero = not C.any()
+        self.cols = cols
+        self.diagonal = not (C - np.diag(np.diag(C))).any()
+        if self.diagonal:
+            self.d = np.diag(C)[cols]
+        else:
+            self.C = np.ascontiguousarray(C[:, cols])
+
+    def __call__(self, Y: np.ndarray) -> np.ndarray:
+        if self.diagonal:
+            return Y[..., self.cols] * self.d
+        return Y @ self.C
 
 
 class KroneckerSolver:
@@ -272,7 +307,12 @@ class _FastDiagonalisation:
         p, c = self.p, self.p.c
         w2, Phi = sla.eigh(c["Ke"], c["M"])
         w2 = np.maximum(np.abs(w2), 1e-12 * np.abs(w2).max())  # near flutter: stay SPD
-        self.Phi, self.Phi_inv = Phi, np.linalg.inv(Phi)
+        Phi_inv = np.linalg.inv(Phi)
+        # the four products of apply, with this rank's columns cut once
+        self.in_xi = np.ascontiguousarray(Phi_inv.T[:, p.mine])
+        self.in_eta = np.ascontiguousarray(Phi[:, p.mine])
+        self.out_xi = np.ascontiguousarray(Phi_inv[:, p.mine])
+        self.out_eta = np.ascontiguousarray(Phi.T[:, p.mine])
         T = p.time_free
         S, Mm = T["S"].toarray(), T["Mm"].toarray()
         skew = T["G"].toarray() - T["C"].toarray()
@@ -285,21 +325,33 @@ class _FastDiagonalisation:
             block[1::2, 0::2] = skew.T
             block[1::2, 1::2] = dt * w2[k] * Mm + S / dt
             self.factors.append(sla.cholesky_banded(_banded(block, 2 * pd + 1), lower=False))
+        # small blocks: their inverses, applied to all modes at once (no loop per mode)
+        self.inverses = None
+        if len(self.factors) * (2 * nf) ** 2 <= INVERSE_ENTRIES:
+            unit = np.eye(2 * nf)
+            self.inverses = np.array([sla.cho_solve_banded((f, False), unit)
+                                      for f in self.factors])
 
     def apply(self, pc, x, y) -> None:
         p = self.p
         R = _gather(p, x.array_r)
-        r_xi = R[:, :p.n] @ self.Phi_inv.T[:, p.mine]  # R_xi Phi^-T
-        r_eta = R[:, p.n:] @ self.Phi[:, p.mine]  # R_eta Phi
-        z_xi = np.empty_like(r_xi)
-        z_eta = np.empty_like(r_eta)
-        rhs = np.empty(2 * p.nf)
-        for i, factor in enumerate(self.factors):
-            rhs[0::2], rhs[1::2] = r_xi[:, i], r_eta[:, i]
-            z = sla.cho_solve_banded((factor, False), rhs)
-            z_xi[:, i], z_eta[:, i] = z[0::2], z[1::2]
+        r_xi = R[:, :p.n] @ self.in_xi  # R_xi Phi^-T
+        r_eta = R[:, p.n:] @ self.in_eta  # R_eta Phi
+        if self.inverses is not None:
+            rhs = np.empty((len(p.mine), 2 * p.nf))
+            rhs[:, 0::2], rhs[:, 1::2] = r_xi.T, r_eta.T
+            z = np.einsum("kij,kj->ki", self.inverses, rhs)
+            z_xi, z_eta = np.ascontiguousarray(z[:, 0::2].T), np.ascontiguousarray(z[:, 1::2].T)
+        else:
+            z_xi = np.empty_like(r_xi)
+            z_eta = np.empty_like(r_eta)
+            rhs = np.empty(2 * p.nf)
+            for i, factor in enumerate(self.factors):
+                rhs[0::2], rhs[1::2] = r_xi[:, i], r_eta[:, i]
+                z = sla.cho_solve_banded((factor, False), rhs)
+                z_xi[:, i], z_eta[:, i] = z[0::2], z[1::2]
         Z_xi, Z_eta = _allgather_columns(p, z_xi), _allgather_columns(p, z_eta)
-        y.array[:] = _pack(Z_xi @ self.Phi_inv[:, p.mine], Z_eta @ self.Phi.T[:, p.mine])
+        y.array[:] = _pack(Z_xi @ self.out_xi, Z_eta @ self.out_eta)
 
 
 def _allgather_columns(p: KroneckerProblem, local: np.ndarray) -> np.ndarray:
@@ -327,7 +379,7 @@ class KroneckerSampler:
     def __call__(self) -> Optional[VertexValues]:
         if self.p.comm.rank != 0:
             return None
-        return self.values(self.linear_part(), self.p.x0, self.p.v0)
+        return self.values(self.linear_part(), self.p.xbar, self.p.vbar)
 
     def linear_part(self) -> np.ndarray:
         """(vertices, 4n): x, v, xi, eta at the vertices, linear in the slab's start state."""
@@ -346,7 +398,7 @@ class KroneckerSampler:
         x[1:-1] = 0.5 * (x[1:-1] + right_x[:-1])
         mv[1:-1] = 0.5 * (mv[1:-1] + right_mv[:-1])
         x[-1], mv[-1] = right_x[-1], right_mv[-1]
-        v = np.linalg.solve(c["M"], mv.T).T
+        v = self.p.velocity(mv)
         return np.hstack([x, v, p.W[::t.degree]])
 
     def values(self, linear: np.ndarray, xbar: np.ndarray, vbar: np.ndarray) -> VertexValues:
@@ -395,4 +447,6 @@ class KroneckerSuperposition:
         if basis is None:
             return None
         linear = np.tensordot(np.concatenate([x0, v0]), basis, axes=1)
-        return self.sampler.values(linear, x0, v0)
+        if p.base == "start":
+            return self.sampler.values(linear, x0, v0)
+        return self.sampler.values(linear, p.xbar, p.vbar)

@@ -19,13 +19,22 @@ from dolfinx import fem
 from mpi4py import MPI
 from petsc4py import PETSc
 
+from fem_dual.base_state import Predictor
 from fem_dual.compat import constant, vector_space
 from fem_dual.pointwise import PointwiseDtP
 from fem_dual.scenes.base import Scene
 from forms.predual import boundary_term, dual_hamiltonian, predual_lagrangian
 from meshes import START, slab_mesh
 
-__all__ = ["SlabProblem"]
+__all__ = ["SlabProblem", "BASES"]
+
+# The base state (xbar, vbar) of H on a slab: the slab's start state held constant ("start", the
+# reference's time staging), or zero ("zero", the reference's own examples). Only the residual
+# of the base state enters the slab action: a constant start state leaves the residual
+# (-v0, -F(x0)/m), an O(omega) forcing that modes the cells do not resolve turn into growth;
+# zero is an exact solution of a linear system, and its slab map damps unresolved modes.
+# "predictor" (fem_dual.base_state) is a function of time near the motion with a small residual.
+BASES = ("start", "zero", "predictor")
 
 
 class SlabProblem:
@@ -38,8 +47,11 @@ class SlabProblem:
         comm: communicator the time mesh is distributed over.
     """
 
-    def __init__(self, scene: Scene, degree: int, cells: int, comm: MPI.Comm = MPI.COMM_WORLD):
-        self.scene, self.degree, self.comm = scene, degree, comm
+    def __init__(self, scene: Scene, degree: int, cells: int, comm: MPI.Comm = MPI.COMM_WORLD,
+                 base: str = "start"):
+        if base not in BASES:
+            raise ValueError(f"base={base!r} is not one of {BASES}")
+        self.scene, self.degree, self.comm, self.base = scene, degree, comm, base
         n = scene.n
         self.n = n
         self.mesh = slab_mesh(comm, cells)
@@ -54,7 +66,14 @@ class SlabProblem:
         self.dt = constant(msh, 1.0)
         self.t0 = constant(msh, 0.0)
         self.x0, self.v0 = constant(msh, zero), constant(msh, zero)
-        self.xbar, self.vbar = constant(msh, zero), constant(msh, zero)
+        self.predictor: Optional[Predictor] = None
+        if base == "predictor":  # a function of time, interpolated one degree above the duals
+            self.predictor = Predictor(scene)
+            space = vector_space(msh, degree + 1, n)
+            self.xbar, self.vbar = fem.Function(space), fem.Function(space)
+            self._base_times = space.tabulate_dof_coordinates()[:, 0]
+        else:
+            self.xbar, self.vbar = constant(msh, zero), constant(msh, zero)
 
         w = self.w
         self.xi = ufl.as_vector([w[i] for i in range(n)])
@@ -148,16 +167,23 @@ class SlabProblem:
         return imap.size_global * self.W.dofmap.index_map_bs
 
     def set_slab(self, x0: np.ndarray, v0: np.ndarray, dt: float, t0: float = 0.0) -> None:
-        """Start a slab [t0, t0 + dt] from (x0, v0), which is also the base state of H; the dual
-        state starts from zero, whose DtP image is the base state."""
-        self.set_start(x0, v0)
+        """Start a slab [t0, t0 + dt] from (x0, v0), which is also the base state of H (base
+        "start"); the dual state starts from zero, whose DtP image is the base state."""
         self.dt.value, self.t0.value = dt, t0
+        self.set_start(x0, v0)
         self.w.x.array[:] = 0.0
         if self.pointwise is not None:
             self.pointwise.reset(x0)
 
     def set_start(self, x0: np.ndarray, v0: np.ndarray) -> None:
-        """The slab's start state, which is also its base state; the dual state is kept (the
-        tangent of the slab map perturbs the start of a solved slab)."""
+        """The slab's start state, which is also its base state unless the base is zero; the
+        dual state is kept (the tangent of the slab map perturbs the start of a solved slab)."""
         self.x0.value, self.v0.value = x0, v0
-        self.xbar.value, self.vbar.value = x0, v0
+        if self.base == "start":
+            self.xbar.value, self.vbar.value = x0, v0
+        elif self.predictor is not None:
+            n = self.n
+            zbar = self.predictor(np.concatenate([x0, v0]), float(self.dt.value) *
+                                  self._base_times)
+            self.xbar.x.array.reshape(-1, n)[:] = zbar[:, :n]
+            self.vbar.x.array.reshape(-1, n)[:] = zbar[:, n:]

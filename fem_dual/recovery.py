@@ -149,7 +149,7 @@ class VertexSampler:
         """One-sided values at both ends of every cell, gathered on rank 0 (None elsewhere):
         columns s, x^ (n), v^ (n), H_d, then xi (n) and eta (n) when sampled."""
         if self.vertex_dtp is not None:
-            self.vertex_dtp.reset(self.problem.xbar.value)
+            self.vertex_dtp.reset(self.problem.x0.value)  # the slab's start: near every vertex
             message = self.vertex_dtp.solve(self.problem.comm)
             if message:
                 raise SolveError(message)

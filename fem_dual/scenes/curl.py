@@ -7,7 +7,7 @@ Binv = I / beta); its reference is DOP853 at rtol = atol = 1e-13 on `force_numpy
 from __future__ import annotations
 
 import dataclasses
-from typing import ClassVar, Dict, Tuple
+from typing import ClassVar, Dict, Optional, Tuple
 
 import numpy as np
 
@@ -15,7 +15,8 @@ import forms.curl2d as curl2d_forms
 import forms.curl2d_lifted as curl2d_lifted_forms
 import forms.curl3d as curl3d_forms
 from fem_dual.reference import IVPFlow
-from fem_dual.scenes.base import Scene, require_positive
+from fem_dual.errors import InputError
+from fem_dual.scenes.base import Scene, matrix_field, require_positive
 from forms import implicit
 
 __all__ = ["ForceScene", "Curl3D", "Curl2D", "Curl2DLifted", "Curl3DUFL", "Curl2DUFL"]
@@ -71,10 +72,36 @@ class Curl3D(ForceScene):
     default_T: ClassVar[float] = 2.0
     default_x0: ClassVar[Tuple[float, ...]] = (0.3, 0.2, 0.1)
     default_v0: ClassVar[Tuple[float, ...]] = (0.0, 0.0, 0.0)
-    summary: ClassVar[str] = "3D curl force -(yz, 2xz, xy), explicit DtP map (section 3.2)"
+    summary: ClassVar[str] = ("3D curl force -(yz, 2xz, xy) [- K x], explicit DtP map "
+                              "(section 3.2)")
+
+    K: Optional[tuple] = matrix_field("a linear spring under the curl force, F = -K x - "
+                                      "(yz, 2xz, xy); default zero")
+
+    def spring(self) -> np.ndarray:
+        return self.matrix("K", np.zeros((3, 3)))
+
+    def position_weight(self) -> np.ndarray:
+        """H's position matrix A = alpha I + sym K: alpha I in the reference; with a stiff
+        spring, its energy, which keeps the weights balanced for the fast direction (the
+        conditioning rule of linear scenes)."""
+        K = self.spring()
+        return self.alpha * np.eye(3) + 0.5 * (K + K.T)
+
+    def validate(self) -> None:
+        super().validate()
+        if np.linalg.eigvalsh(self.position_weight()).min() <= 0:
+            raise InputError(f"K={list(self.spring().ravel())} makes H's weight alpha I + sym K "
+                             "indefinite; raise alpha")
+
+    def constants(self) -> Dict[str, np.ndarray]:
+        values = super().constants()
+        values.pop("K", None)
+        values["K"], values["A"] = self.spring(), self.position_weight()
+        return values
 
     def force_numpy(self, x):
-        return -np.array([x[1] * x[2], 2 * x[0] * x[2], x[0] * x[1]])
+        return -self.spring() @ x - np.array([x[1] * x[2], 2 * x[0] * x[2], x[0] * x[1]])
 
 
 @dataclasses.dataclass(frozen=True)
