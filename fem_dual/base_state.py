@@ -17,7 +17,9 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["Predictor", "force_jacobian"]
+__all__ = ["Predictor", "force_jacobian", "stiff_at_start", "STIFF_RATIO"]
+
+STIFF_RATIO = 5.0  # fastest linearised frequency / the start's rate beyond which it is stiff
 
 
 def force_jacobian(force, x: np.ndarray) -> np.ndarray:
@@ -59,3 +61,17 @@ class Predictor:
         for i, ti in enumerate(np.asarray(t, dtype=float)):
             out[i] = z0 + ti * np.linalg.solve(eye - ti * J, f0)
         return out
+
+
+def stiff_at_start(scene, x0: np.ndarray, v0: np.ndarray) -> bool:
+    """Whether a nonlinear scene is stiff at its start: the fastest frequency of the force
+    linearised there, sqrt |eig(M^-1 dF/dx)|, exceeds STIFF_RATIO times the start's own rate
+    (fem_dual.stepper.motion_rate), so that slabs sized by the motion leave modes unresolved."""
+    from fem_dual.stepper import motion_rate
+
+    Minv = np.linalg.inv(scene.mass_matrix())
+    a0 = Minv @ scene.force_numpy(x0)
+    fastest = float(np.sqrt(np.abs(np.linalg.eigvals(Minv @ force_jacobian(scene.force_numpy,
+                                                                          x0))).max()))
+    rate = motion_rate(x0, v0, a0)
+    return fastest > STIFF_RATIO * rate if rate > 0 else False

@@ -3,7 +3,9 @@
 One problem, one reference (the scene's: matrix exponential or DOP853 at 1e-13). Rows:
 fem-dual at degrees 2, 3, 4 over a range of cells per slab, fem-dual with --rtol (adaptive slab
 lengths) at the tolerances of `--rtols`, and scipy's RK45, DOP853, its Fortran DOP853
-(`ode('dop853')`, "DOP853-f") and Radau over a range of tolerances (the `--rtols` among them),
+(`ode('dop853')`, "DOP853-f"), Radau and LSODA (both with the exact Jacobian for linear
+scenes) over a range of tolerances (the `--rtols` among them), and for linear scenes the
+matrix-exponential propagator ("expm": exp(A h) once per step, a product per output time),
 measured in the same process. The peers answer at fem-dual's output times (the vertices of its
 run with the fewest of them, so no peer pays for more output or is judged at more times than a
 fem-dual row; 1001 equispaced times when there is no fem-dual row); each row also reports the
@@ -35,7 +37,8 @@ COLUMNS = ["method", "degree", "cells", "slabs", "rtol", "max_error", "final_err
            "compile_s", "samples", "estimate", "slabs_solved"]
 ADAPTIVE_CELLS = 4  # cells per slab of the fem-dual --rtol rows
 TOLERANCES = {"RK45": [1e-4, 1e-6, 1e-8, 1e-10], "DOP853": [1e-6, 1e-8, 1e-10, 1e-12],
-              "DOP853-f": [1e-6, 1e-8, 1e-10, 1e-12], "Radau": [1e-4, 1e-6, 1e-8]}
+              "DOP853-f": [1e-6, 1e-8, 1e-10, 1e-12], "Radau": [1e-4, 1e-6, 1e-8],
+              "LSODA": [1e-6, 1e-8, 1e-10, 1e-12]}
 
 
 def _state_error(x, v, x_ref, v_ref) -> np.ndarray:
@@ -76,17 +79,17 @@ def _fem_rows(base: RunConfig, degrees: Sequence[int], cells: Sequence[int],
     rows = []
     for degree in degrees:
         for n in sorted(set(cells) | ({ADAPTIVE_CELLS} if rtols else set())):
-            sim = Simulation(base.scene, degree, n, comm)  # compiled once per degree and cells
-            compile_s = sim.setup_s
+            common = dict(T=base.T, cells=n, degree=degree, x0=base.x0, v0=base.v0,
+                          staging="off", base=base.base, coordinates=base.coordinates)
             configs = []
             if n in cells:
-                configs += [RunConfig.create(base.scene, T=base.T, cells=n, degree=degree,
-                                             slabs=k, x0=base.x0, v0=base.v0, staging="off")
-                            for k in slabs]
+                configs += [RunConfig.create(base.scene, slabs=k, **common) for k in slabs]
             if n == ADAPTIVE_CELLS:
-                configs += [RunConfig.create(base.scene, T=base.T, cells=n, degree=degree,
-                                             rtol=tol, x0=base.x0, v0=base.v0, staging="off")
-                            for tol in rtols]
+                configs += [RunConfig.create(base.scene, rtol=tol, **common) for tol in rtols]
+            if not configs:
+                continue
+            sim = Simulation.for_config(configs[0], comm)  # compiled once per degree and cells
+            compile_s = sim.setup_s
             for config in configs:
                 what = (f"p={degree} cells={n} " + (f"slabs={config.slabs}" if config.rtol is None
                                                      else f"rtol={config.rtol:g}"))
@@ -111,6 +114,23 @@ def _compiled_dop853(rhs, z0: np.ndarray, t: np.ndarray, tol: float) -> np.ndarr
     return out
 
 
+def _expm_propagator(A: np.ndarray, z0: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """z at the times t by exp(A h) once per distinct step h (to 1e-9), then one product per
+    output time: the matrix-exponential propagator."""
+    from scipy.linalg import expm
+
+    out = np.empty((len(t), len(z0)))
+    out[0] = z0
+    steps: Dict[float, np.ndarray] = {}
+    for i, h in enumerate(np.diff(t)):
+        key = next((k for k in steps if abs(k - h) <= 1e-9 * abs(h)), None)
+        if key is None:
+            key = float(h)
+            steps[key] = expm(h * A)
+        out[i + 1] = steps[key] @ out[i]
+    return out
+
+
 def _ode_rows(scene: Scene, T: float, x0: np.ndarray, v0: np.ndarray, t: np.ndarray,
               repeats: int, rtols: Sequence[float] = ()) -> List[Dict]:
     n = scene.n
@@ -125,6 +145,17 @@ def _ode_rows(scene: Scene, T: float, x0: np.ndarray, v0: np.ndarray, t: np.ndar
     x_ref, v_ref = scene.reference(x0, v0)(t)
     z0 = np.concatenate([x0, v0])
     rows = []
+    if scene.linear:  # the exact propagator: what a user of a linear model would pick
+        walls = []
+        for _ in range(repeats):
+            tic = time.perf_counter()
+            y = _expm_propagator(A, z0, t)
+            walls.append(time.perf_counter() - tic)
+        err = _state_error(y[:, :n], y[:, n:], x_ref, v_ref)
+        rows.append({"method": "expm", "degree": None, "cells": None, "slabs": None,
+                     "rtol": None, "max_error": float(err.max()), "final_error": float(err[-1]),
+                     "wall_s": float(np.median(walls)), "compile_s": 0.0, "samples": len(t),
+                     "estimate": None, "slabs_solved": None})
     for method, tolerances in TOLERANCES.items():
         for tol in sorted(set(tolerances) | set(rtols)):
             walls, y = [], None
@@ -136,7 +167,9 @@ def _ode_rows(scene: Scene, T: float, x0: np.ndarray, v0: np.ndarray, t: np.ndar
                     except RuntimeError:
                         y = None
                 else:
-                    kwargs = {"jac": jac} if (method == "Radau" and jac is not None) else {}
+                    kwargs = {}
+                    if jac is not None and method in ("Radau", "LSODA"):  # LSODA: callable
+                        kwargs["jac"] = (lambda _t, _z: jac) if method == "LSODA" else jac
                     sol = solve_ivp(rhs, (0.0, T), z0, method=method, t_eval=t, rtol=tol,
                                     atol=tol, **kwargs)
                     y = sol.y.T if sol.status == 0 else None

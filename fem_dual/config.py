@@ -9,6 +9,7 @@ from typing import Dict, Mapping, Optional, Sequence, Union
 
 import numpy as np
 
+from fem_dual.base_state import stiff_at_start
 from fem_dual.errors import InputError
 from fem_dual.modal import modal_obstacle
 from fem_dual.problem import BASES
@@ -86,11 +87,15 @@ class RunConfig:
 
     @property
     def base_state(self) -> str:
-        """The base state in use: `base`, with auto resolved (zero for linear scenes, where it
-        is residual-free and damps what the slabs do not resolve; start for nonlinear ones)."""
+        """The base state in use: `base`, with auto resolved. Linear scenes with energy weights
+        (stiff ones): zero, residual-free, damps what the slabs do not resolve. Nonlinear scenes
+        stiff at the start: the predictor (fem_dual.base_state). Otherwise the start state,
+        the reference's time staging, as accurate and cheaper there."""
         if self.base != "auto":
             return self.base
-        return "zero" if self._stiff_linear else "start"
+        if self.scene.linear:
+            return "zero" if self._stiff_linear else "start"
+        return "predictor" if stiff_at_start(self.scene, self.x0, self.v0) else "start"
 
     @property
     def _stiff_linear(self) -> bool:

@@ -202,18 +202,22 @@ class Simulation:
         recovery: how the primal state is read from the dual solution ("momentum" or "dtp").
         kronecker: linear scenes: solve in Kronecker form (matrix-free CG).
         with_dual: also sample the dual fields (output); the error companion does without.
+        base: the base state of H on a slab (fem_dual.problem.BASES).
+        modal: linear scenes: solve in modal coordinates (fem_dual.modal); a ModalBasis is
+            shared (the error companion uses its partner's).
     """
 
     def __init__(self, scene, degree: int, cells: int, comm: MPI.Comm = MPI.COMM_WORLD,
                  petsc: Optional[Dict[str, str]] = None, recovery: str = "momentum",
                  kronecker: bool = False, with_dual: bool = True, base: str = "start",
-                 modal: bool = False):
+                 modal: "bool | ModalBasis" = False):
         quiet_jit_logging()
         tic = time.perf_counter()
         self.scene, self.degree, self.cells, self.comm = scene, degree, cells, comm
         self.prefix = solver_prefix(scene.name)
         self.recovery, self.kronecker, self.petsc, self.base = recovery, kronecker, petsc, base
-        self.modal = ModalBasis(scene) if modal else None
+        self.modal = modal if isinstance(modal, ModalBasis) else (ModalBasis(scene) if modal
+                                                                  else None)
         solved = self.modal.scene if modal else scene  # the scene whose slabs are solved
         if kronecker:
             self.problem = KroneckerProblem(solved, degree, cells, comm, base)
@@ -252,15 +256,17 @@ class Simulation:
             self._companion = Simulation(self.scene, self.degree + 1, self.cells, self.comm,
                                          self.petsc, self.recovery, self.kronecker,
                                          with_dual=False, base=self.base,
-                                         modal=self.modal is not None)
+                                         modal=self.modal is not None and self.modal)
             self.setup_s += self._companion.setup_s
         return self._companion
 
     def begin(self, config: RunConfig) -> None:
         """Set up a run: the scene's parameter values, fresh counts, superposition bases."""
         if config.scene != self.scene:
-            if self.modal is not None:
+            if self.modal is not None and self.modal.physical != config.scene:
                 self.modal = ModalBasis(config.scene)
+                if self._companion is not None:  # shares the modes
+                    self._companion.modal = self.modal
             self.problem.set_scene_constants(config.scene if self.modal is None
                                              else self.modal.scene)
             self.scene = config.scene
@@ -324,6 +330,13 @@ class Simulation:
         if moved is None:
             return None
         return np.hstack([moved.x - values.x, moved.v - values.v])
+
+    def unresolved(self, z0: np.ndarray, dt: float) -> Optional[np.ndarray]:
+        """(2n,): the part of z0 in modes the slab does not resolve, which the zero base damps
+        (modal coordinates only: elsewhere the modes are not at hand; None)."""
+        if self.modal is None or self.base != "zero":
+            return None
+        return self.modal.unresolved(z0, dt, self.cells, self.degree)
 
     def verify(self) -> Optional[str]:
         """Why the last slab solve cannot be trusted although it converged, or None."""
@@ -476,7 +489,8 @@ def _above(e: np.ndarray, floor: Tuple[float, float]) -> np.ndarray:
 
 
 def _judge(vals: VertexValues, companion: VertexValues, algebraic: Optional[np.ndarray],
-           psi: Optional[np.ndarray], weights: ErrorWeights, bound: Optional[GrowthBound],
+           psi: Optional[np.ndarray], lost: Optional[np.ndarray], weights: ErrorWeights,
+           bound: Optional[GrowthBound],
            t0: float, dt: float,
            T: float) -> Tuple[str, Optional[float], str, Optional[SlabEstimate]]:
     """(action, weighted local error, reason, estimate) for a solved slab on rank 0: "accept",
@@ -488,6 +502,8 @@ def _judge(vals: VertexValues, companion: VertexValues, algebraic: Optional[np.n
     if algebraic is not None:  # the answer's own Newton error (the companion's cancels it)
         local = local + algebraic
     local = ESTIMATE_SAFETY * local
+    if lost is not None:  # damped by the zero base: gone from the answer after the start
+        local[1:] += lost
     glob = local if psi is None else local + psi
     if not (np.isfinite(local).all() and np.isfinite(glob).all()):
         return "retry", None, "the error estimate is not finite", None
@@ -546,7 +562,7 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool) -> RunResult:
         t1 = time.perf_counter()
         estimate = None
         try:
-            if config.base_state == "start":  # the zero base damps what it does not resolve
+            if config.base_state != "zero":  # the zero base damps what it does not resolve
                 check_resolution(rate, dt, sim.cells, config.degree)
             vals = sim.solve_slab(z, t0, dt)
             suspicious = sim.verify()
@@ -555,11 +571,12 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool) -> RunResult:
             t2 = time.perf_counter()
             algebraic = sim.algebraic_error(z, vals)
             psi = sim.tangent(z, d, t0, dt, vals)
+            lost = sim.unresolved(z, dt)
             companion = sim.companion.solve_slab(z, t0, dt)
             timings["estimate_s"] += time.perf_counter() - t2
             verdict = None
             if root:
-                action, err, reason, estimate = _judge(vals, companion, algebraic, psi,
+                action, err, reason, estimate = _judge(vals, companion, algebraic, psi, lost,
                                                        weights, bound, t0, dt, config.T)
                 verdict = (action, err, reason)
             action, err, reason = bcast(comm, verdict)

@@ -193,6 +193,35 @@ def _versus_identity_weights(att: Attempt, comm: MPI.Comm):
                         "identity_condition": other.condition}
 
 
+def _versus_start_base(att: Attempt, comm: MPI.Comm):
+    """The same run on the old base state (the slab's start held constant, physical
+    coordinates): the stiff case must cost what its slow motion needs (at most twice the
+    requested slabs), where the old base resolves the fast modes or stops."""
+    r = att.result
+    requested = att.config.slab_count
+    old = attempt(dataclasses.replace(att.config, base="start", coordinates="physical"), comm,
+                  condition=False)
+    solved = len(r.slab_lengths)
+    if old.failure is not None:
+        other = "start base: exit 3"
+    else:
+        other = (f"start base: {len(old.result.slab_lengths)} slabs, relative error "
+                 f"{old.relative_error():.1e}")
+    text = f"base {att.config.base_state}: {solved} slabs for {requested} asked; {other}"
+    return solved <= 2 * requested, text, {"base": att.config.base_state, "slabs_asked": requested,
+                                           "start_base_failed": old.failure is not None}
+
+
+def _scaled_column(links: int, P: float, **kw) -> RunConfig:
+    """N links scaled like a continuous column (l = 1/N, c = N, m = 1/N), from its lowest mode."""
+    params = {"links": str(links), "l": repr(1 / links), "c": repr(float(links)),
+              "m": repr(1 / links), "P": repr(P)}
+    scene = RunConfig.create("column", params).scene
+    lam, U = np.linalg.eig(np.linalg.solve(scene.mass_matrix(), scene.stiffness_matrix()))
+    x0 = np.real(U[:, int(np.argmin(np.abs(lam)))])
+    return RunConfig.create(scene, x0=0.1 * x0 / np.abs(x0).max(), v0=np.zeros(links), **kw)
+
+
 # -- the cases ---------------------------------------------------------------------------------
 def _ziegler(params=None, **kw) -> RunConfig:
     return RunConfig.create("ziegler", params, **kw)
@@ -318,6 +347,22 @@ CASES: List[Case] = [
          lambda: RunConfig.create("curl3d", T=8.0, rtol=1e-8, cells=4, degree=4), tol=1e-8),
     Case("rtol-stiff-c1=1e4", "--rtol 1e-8, fast and slow modes: within the tolerance",
          lambda: _ziegler({"c1": "1e4"}, T=10.0, rtol=1e-8, cells=4, degree=4), tol=1e-8),
+] + [  # issue 14: stiff systems at the cost of their slow motion
+    Case("stiff-two-modes-omega=1e3", "omega 1 and 1e3 (shear-coupled), 20 slabs of one P4 "
+         "cell: converges (rel. error <= 1e-7) at the slow mode's cost",
+         lambda: RunConfig.create("linear", {"dofs": "2", "M": "1,-1,-1,2",
+                                             "K": "1,-1,-1,1000001"}, T=10.0, slabs=20,
+                                  cells=1, degree=4, x0="1,0", v0="0,0"),
+         tol=1e-7, check=_versus_start_base),
+    Case("stiff-column-40-links", "40-link follower column (P = 9.5), 20 slabs (the fastest "
+         "mode turns 1e3 rad per cell): converges (rel. error <= 1e-6)",
+         lambda: _scaled_column(40, 9.5, T=2.5, slabs=20, cells=4, degree=4), tol=1e-6,
+         check=_versus_start_base),
+    Case("stiff-curl3d-spring=1e6", "curl force on a stiff spring (omega = 1e3 in z), slow start, "
+         "50 slabs: converges (rel. error <= 1e-8) at the slow motion's cost",
+         lambda: RunConfig.create("curl3d", {"K": "0,0,0,0,0,0,0,0,1e6"}, T=10.0, slabs=50,
+                                  cells=2, degree=4, x0="0.3,0.2,-6e-8"),
+         tol=1e-8, check=_versus_start_base),
 ]
 
 

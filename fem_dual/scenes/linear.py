@@ -21,7 +21,7 @@ from typing import ClassVar, Dict, Optional, Tuple
 import numpy as np
 
 import forms.linear as linear_forms
-from fem_dual.reference import LinearFlow, first_order_matrix
+from fem_dual.reference import first_order_matrix, linear_flow
 from fem_dual.errors import InputError
 from fem_dual.scenes.base import Scene, choice_field, is_spd, matrix_field, require_spd
 
@@ -115,8 +115,9 @@ class LinearScene(Scene):
         excited = amplitude > 1e-6 * max(np.linalg.norm(z0), 1e-300)
         return float(np.abs(lam[excited]).max()) if excited.any() else 0.0
 
-    def reference(self, x0, v0) -> LinearFlow:
-        return LinearFlow(self.first_order_matrix(), x0, v0)
+    def reference(self, x0, v0):
+        return linear_flow(self.mass_matrix(), self.stiffness_matrix(), self.damping_matrix(),
+                           x0, v0)
 
 
 @dataclasses.dataclass(frozen=True)
