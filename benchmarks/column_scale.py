@@ -20,10 +20,10 @@ import resource
 import sys
 import time
 
-import numpy as np
-from mpi4py import MPI
+from fem_dual import RunConfig  # first: it sets one BLAS thread per rank under mpirun
 
-from fem_dual import RunConfig
+import numpy as np  # noqa: E402
+from mpi4py import MPI  # noqa: E402
 from fem_dual.driver import Simulation
 from fem_dual.flutter import critical_load, eigen_rate
 from fem_dual.mpi import allreduce, print0

@@ -308,11 +308,12 @@ class _FastDiagonalisation:
         w2, Phi = sla.eigh(c["Ke"], c["M"])
         w2 = np.maximum(np.abs(w2), 1e-12 * np.abs(w2).max())  # near flutter: stay SPD
         Phi_inv = np.linalg.inv(Phi)
-        # the four products of apply, with this rank's columns cut once
-        self.in_xi = np.ascontiguousarray(Phi_inv.T[:, p.mine])
-        self.in_eta = np.ascontiguousarray(Phi[:, p.mine])
-        self.out_xi = np.ascontiguousarray(Phi_inv[:, p.mine])
-        self.out_eta = np.ascontiguousarray(Phi.T[:, p.mine])
+        # the four products of apply, with this rank's columns cut once (scalings in modal
+        # coordinates, where Phi is diagonal)
+        self.in_xi = _RightFactor(Phi_inv.T, p.mine)
+        self.in_eta = _RightFactor(Phi, p.mine)
+        self.out_xi = _RightFactor(Phi_inv, p.mine)
+        self.out_eta = _RightFactor(Phi.T, p.mine)
         T = p.time_free
         S, Mm = T["S"].toarray(), T["Mm"].toarray()
         skew = T["G"].toarray() - T["C"].toarray()
@@ -335,12 +336,12 @@ class _FastDiagonalisation:
     def apply(self, pc, x, y) -> None:
         p = self.p
         R = _gather(p, x.array_r)
-        r_xi = R[:, :p.n] @ self.in_xi  # R_xi Phi^-T
-        r_eta = R[:, p.n:] @ self.in_eta  # R_eta Phi
+        r_xi = self.in_xi(R[:, :p.n])  # R_xi Phi^-T
+        r_eta = self.in_eta(R[:, p.n:])  # R_eta Phi
         if self.inverses is not None:
             rhs = np.empty((len(p.mine), 2 * p.nf))
             rhs[:, 0::2], rhs[:, 1::2] = r_xi.T, r_eta.T
-            z = np.einsum("kij,kj->ki", self.inverses, rhs)
+            z = np.matmul(self.inverses, rhs[:, :, None])[:, :, 0]
             z_xi, z_eta = np.ascontiguousarray(z[:, 0::2].T), np.ascontiguousarray(z[:, 1::2].T)
         else:
             z_xi = np.empty_like(r_xi)
@@ -351,7 +352,7 @@ class _FastDiagonalisation:
                 z = sla.cho_solve_banded((factor, False), rhs)
                 z_xi[:, i], z_eta[:, i] = z[0::2], z[1::2]
         Z_xi, Z_eta = _allgather_columns(p, z_xi), _allgather_columns(p, z_eta)
-        y.array[:] = _pack(Z_xi @ self.out_xi, Z_eta @ self.out_eta)
+        y.array[:] = _pack(self.out_xi(Z_xi), self.out_eta(Z_eta))
 
 
 def _allgather_columns(p: KroneckerProblem, local: np.ndarray) -> np.ndarray:
