@@ -627,6 +627,9 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool) -> RunResult:
         if scene.linear:
             record["weighting"] = scene.weighting()
             record["assembly"] = "kronecker" if sim.kronecker else "forms"
+        record["base"] = config.base_state
+        if scene.linear:
+            record["coordinates"] = "modal" if sim.modal is not None else "physical"
         record["slab_solves"] = _solves(sim)
         record["companion_solves"] = _solves(sim.companion)
         record["tangent_solves"] = sim.tangent_solves

@@ -331,7 +331,7 @@ class _FastDiagonalisation:
         if len(self.factors) * (2 * nf) ** 2 <= INVERSE_ENTRIES:
             unit = np.eye(2 * nf)
             self.inverses = np.array([sla.cho_solve_banded((f, False), unit)
-                                      for f in self.factors])
+                                      for f in self.factors]).reshape(-1, 2 * nf, 2 * nf)
 
     def apply(self, pc, x, y) -> None:
         p = self.p
