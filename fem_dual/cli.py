@@ -177,13 +177,7 @@ def _summary(result: RunResult) -> str:
 
 
 def _list_scenes() -> str:
-    lines = []
-    for name, cls in SCENES.items():
-        defaults = cls()
-        params = ", ".join(f"{k}={v}" for k, v in defaults.parameters().items())
-        lines.append(f"{name}: {cls.summary}\n  n={defaults.n}  T={cls.default_T:g}  "
-                     f"x0={defaults.default_x0}  v0={defaults.default_v0}\n  parameters: {params}")
-    return "\n".join(lines)
+    return "\n".join(cls.listing() for cls in SCENES.values())
 
 
 def _int_list(name: str, text: str) -> List[int]:

@@ -184,6 +184,14 @@ class Scene(abc.ABC):
         scene.validate()
         return scene
 
+    @classmethod
+    def listing(cls) -> str:
+        """What `fem-dual scenes` prints: summary, size, defaults and parameters."""
+        defaults = cls()
+        params = ", ".join(f"{k}={v}" for k, v in defaults.parameters().items())
+        return (f"{cls.name}: {cls.summary}\n  n={defaults.n}  T={cls.default_T:g}  "
+                f"x0={defaults.default_x0}  v0={defaults.default_v0}\n  parameters: {params}")
+
     def matrix(self, name: str, default: np.ndarray) -> np.ndarray:
         """The matrix parameter `name`, or `default` where the user gave none."""
         value = getattr(self, name)
