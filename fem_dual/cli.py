@@ -24,7 +24,7 @@ __all__ = ["main", "build_parser"]
 
 # Options whose value may start with "-" (negative numbers): "--x0 -1,2" is joined to "--x0=-1,2".
 _VALUE_OPTIONS = ("--T", "--x0", "--v0", "--param", "--cells", "--degree", "--slabs",
-                  "--max-halvings", "--rtol", "--atol")
+                  "--max-halvings", "--rtol", "--atol", "--F", "--t-eval")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -88,6 +88,19 @@ def build_parser() -> argparse.ArgumentParser:
                    "modes of (K, M): resolved modes keep order 2p under a follower load, "
                    "unresolved ones are damped), physical, auto (default) = modal on the zero "
                    "base when the modes are well conditioned")
+    r.add_argument("--F", help='scene force: the force, one expression per component, e.g. '
+                   '"-k*x*y**2, -k*x**3" (x, y, z or x1..xn; + - * / **; sin cos tan exp log '
+                   "sqrt sinh cosh tanh atan abs; pi; parameters by --param)")
+    r.add_argument("--scene-file", help="a Python file declaring your own scene (a ForceScene "
+                   "subclass with forms, see README 'Your own force'); SCENE names it")
+    r.add_argument("--reference", default="auto", help="auto (default): compare with the "
+                   "scene's reference (matrix exponential or DOP853 at 1e-13); none: skip it "
+                   "(the error estimate remains)")
+    r.add_argument("--t-eval", help="also the state at these times: t1,t2,... or "
+                   "START:STOP:COUNT (JSON t_eval; quintic Hermite between the vertices)")
+    r.add_argument("--csv", help="write t, x1..xn, v1..vn at the output times to this file")
+    r.add_argument("--plot", help="write PNG pictures of the motion, phase portrait, error and "
+                   "H_d into this directory")
     r.add_argument("--out", help="write XDMF output into this directory")
     r.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     r.add_argument("--petsc-option", action="append", default=[], metavar="KEY=VALUE",
@@ -139,6 +152,35 @@ def _join_negative_values(argv: Sequence[str]) -> List[str]:
     return out
 
 
+def _check_files(comm: MPI.Comm, args) -> dict:
+    """--csv FILE and --plot DIR checked before anything runs (bad paths are bad input)."""
+    from pathlib import Path
+
+    from fem_dual.output import check_output_dir_on_root
+
+    files = {}
+    if args.csv is not None:
+        parent = Path(args.csv).parent
+        if not parent.is_dir() or Path(args.csv).is_dir():
+            raise InputError(f"csv={args.csv!r}: not a file in an existing directory")
+        files["csv"] = Path(args.csv)
+    if args.plot is not None:
+        files["plot"] = check_output_dir_on_root(comm, args.plot)
+    return files
+
+
+def _write_files(comm: MPI.Comm, result: RunResult, files: dict) -> None:
+    """The CSV and the pictures of a run (rank 0), also of the completed part of a failed run."""
+    if comm.rank != 0 or len(result.t) == 0:
+        return
+    if "csv" in files:
+        result.write_csv(files["csv"])
+    if "plot" in files:
+        from fem_dual.plots import write_plots
+
+        result.output_files += [str(p) for p in write_plots(result, files["plot"])]
+
+
 def _summary(result: RunResult) -> str:
     e, h, tm = result.error, result.hamiltonian, result.timings
     fin = result.final
@@ -165,8 +207,9 @@ def _summary(result: RunResult) -> str:
         lines += [f"  final   t={fin['t']:g}  x={fmt(fin['x'])}  v={fmt(fin['v'])}",
                   f"  error   estimated x_max={est['x_max']:.3e}  v_max={est['v_max']:.3e}  "
                   f"(no reference needed)",
-                  f"          reference x_max={e['x_max']:.3e}  v_max={e['v_max']:.3e}  "
-                  f"final={e['final']:.3e}",
+                  ("          reference: none (--reference none)" if e["x_max"] is None else
+                   f"          reference x_max={e['x_max']:.3e}  v_max={e['v_max']:.3e}  "
+                   f"final={e['final']:.3e}"),
                   f"  H_d     min={h['min']:.6g}  max={h['max']:.6g}  "
                   f"drift per slab={h['drift']:.3e}"]
     lines.append(f"  time    total {tm['total_s']:.3f} s (compile {tm['compile_s']:.3f} s, "
@@ -281,6 +324,10 @@ def main(argv: Optional[Sequence[str]] = None, comm: MPI.Comm = MPI.COMM_WORLD) 
         if args.command == "scenes":
             print0(comm, _list_scenes())
             return 0
+        if getattr(args, "scene_file", None):
+            from fem_dual.scenes import load_scene_file
+
+            load_scene_file(args.scene_file)
         params = dict(_key_value(p, "--param") for p in getattr(args, "param", []))
         if args.command == "bench":
             return _bench(args, params, comm)
@@ -289,22 +336,31 @@ def main(argv: Optional[Sequence[str]] = None, comm: MPI.Comm = MPI.COMM_WORLD) 
         if args.command == "stress":
             return _stress(args, comm)
         petsc = dict(_key_value(p, "--petsc-option") for p in args.petsc_option)
+        if args.F is not None:
+            if args.scene != "force":
+                raise InputError(f"--F gives the force of scene force, not of {args.scene}")
+            params["F"] = args.F
+        files = _check_files(comm, args)
         config = RunConfig.create(args.scene, params, T=args.T, cells=args.cells,
                                   degree=args.degree, slabs=args.slabs, x0=args.x0, v0=args.v0,
                                   out=args.out, petsc=petsc, max_halvings=args.max_halvings,
                                   superpose=args.superpose, staging=args.staging,
                                   recovery=args.recovery, assembly=args.assembly,
                                   rtol=args.rtol, atol=args.atol, base=args.base,
-                                  coordinates=args.coordinates)
+                                  coordinates=args.coordinates, reference=args.reference,
+                                  t_eval=args.t_eval)
         result = run(config, comm, progress=not args.json and sys.stderr.isatty())
     except InputError as exc:
         print0(comm, f"fem-dual: error: {_one_line(exc)}", file=sys.stderr)
         return InputError.exit_status
     except SolveError as exc:
         print0(comm, f"fem-dual: solve failed: {_one_line(exc)}", file=sys.stderr)
-        if exc.partial is not None and args.command == "run" and args.json and comm.rank == 0:
-            exc.partial.write_json(sys.stdout)
+        if exc.partial is not None and args.command == "run":
+            _write_files(comm, exc.partial, files)
+            if args.json and comm.rank == 0:
+                exc.partial.write_json(sys.stdout)
         return SolveError.exit_status
+    _write_files(comm, result, files)
     if args.json:
         if comm.rank == 0:
             result.write_json(sys.stdout)

@@ -31,6 +31,8 @@ STAGING_LIMIT = 800
 STAGING = ("auto", "off")
 ASSEMBLY = ("auto", "forms", "kronecker")
 COORDINATES = ("auto", "physical", "modal")
+REFERENCES = ("auto", "none")
+MAX_TIMES = 1_000_000  # --t-eval: at most this many times
 MODAL_MAX_DOFS = 2000  # auto: the O(n^3) modes of larger systems cost more than they save
 KRONECKER_MIN_DOFS = 5  # auto: linear scenes from this many dofs take the Kronecker path
 
@@ -62,6 +64,29 @@ def _tolerance(name: str, value: Number) -> float:
     return tol
 
 
+def parse_times(text: "str | Sequence[float]", T: float) -> np.ndarray:
+    """Times in [0, T] from "t1,t2,..." or "START:STOP:COUNT" (COUNT equispaced, both ends
+    included), or a sequence of numbers; InputError naming the bad piece."""
+    if isinstance(text, str) and ":" in text:
+        parts = text.split(":")
+        if len(parts) != 3:
+            raise InputError(f"t-eval={text!r} is not START:STOP:COUNT")
+        start, stop = parse_number("t-eval start", parts[0]), parse_number("t-eval stop", parts[1])
+        count = _whole_number("t-eval count", parts[2])
+        if count > MAX_TIMES:
+            raise InputError(f"t-eval count={count} is too large (at most {MAX_TIMES})")
+        times = np.linspace(start, stop, count)
+    else:
+        items = text.split(",") if isinstance(text, str) else list(np.ravel(text))
+        if len(items) > MAX_TIMES:
+            raise InputError(f"t-eval has {len(items)} times (at most {MAX_TIMES})")
+        times = np.array([parse_number("t-eval", item) for item in items])
+    bad = times[(times < 0) | (times > T)]
+    if len(bad):
+        raise InputError(f"t-eval time {bad[0]!r} lies outside [0, T={T:g}]")
+    return times
+
+
 @dataclass(frozen=True)
 class RunConfig:
     """Everything a run needs. Build it with `RunConfig.create`, which validates."""
@@ -84,6 +109,8 @@ class RunConfig:
     atol: float = 0.0
     base: str = "auto"  # H's base state per slab: start, zero, auto (see base_state)
     coordinates: str = "auto"  # linear scenes: physical, modal, auto (see modal)
+    reference: str = "auto"  # auto: the scene's reference; none: skip it (error is null)
+    t_eval: Optional[np.ndarray] = None  # extra output times (dense output, fem_dual.dense)
 
     @property
     def base_state(self) -> str:
@@ -155,7 +182,8 @@ class RunConfig:
                max_halvings: Number = 6, superpose: str = "auto", staging: str = "auto",
                recovery: str = "momentum", assembly: str = "auto",
                rtol: Optional[Number] = None, atol: Optional[Number] = None,
-               base: str = "auto", coordinates: str = "auto") -> "RunConfig":
+               base: str = "auto", coordinates: str = "auto", reference: str = "auto",
+               t_eval: Optional[Union[str, Sequence[float]]] = None) -> "RunConfig":
         """Validate every input; raises InputError naming the first bad value.
 
         With `rtol` (and optionally `atol`) the slab lengths are chosen by the error estimate
@@ -216,6 +244,15 @@ class RunConfig:
             obstacle = modal_obstacle(scene)
             if obstacle:
                 raise InputError(f"coordinates=modal: {obstacle}")
+        if reference not in REFERENCES:
+            raise InputError(f"reference={reference!r} is not one of {', '.join(REFERENCES)}")
+        times = None if t_eval is None else parse_times(t_eval, T_value)
+        if not scene.linear:  # the force must be finite where the motion starts
+            with np.errstate(all="ignore"):
+                f0 = np.asarray(scene.force_numpy(x0_), dtype=float)
+            if f0.shape != (n,) or not np.isfinite(f0).all():
+                raise InputError(f"the force is not finite at x0={','.join(map(repr, x0_))} "
+                                 f"(F = {','.join(map(str, np.ravel(f0)))})")
         rtol_ = None if rtol is None else _tolerance("rtol", rtol)
         if atol is not None and rtol is None:
             raise InputError(f"atol={atol!r} needs rtol (atol alone sets no tolerance)")
@@ -225,4 +262,4 @@ class RunConfig:
                              "chooses the slab lengths")
         return cls(scene, T_value, cells_, degree_, slabs_, x0_, v0_,
                    None if out is None else Path(out), petsc_, halvings, superpose, staging,
-                   recovery, assembly, rtol_, atol_, base, coordinates)
+                   recovery, assembly, rtol_, atol_, base, coordinates, reference, times)

@@ -18,7 +18,8 @@ from mpi4py import MPI
 
 from fem_dual.compat import quiet_jit_logging
 from fem_dual.config import STAGING_LIMIT, RunConfig
-from fem_dual.errors import SolveError
+from fem_dual.dense import hermite_at
+from fem_dual.errors import InputError, SolveError
 from fem_dual.modal import ModalBasis
 from fem_dual.kronecker import (KroneckerProblem, KroneckerSampler, KroneckerSolver,
                                 KroneckerSuperposition)
@@ -67,6 +68,25 @@ class RunResult:
     error_estimate: Optional[float] = None
     estimate: Dict[str, Any] = field(default_factory=dict)
     tolerance: Dict[str, Any] = field(default_factory=dict)
+    t_eval: Optional[Dict[str, Any]] = None
+    scene_object: Any = field(default=None, repr=False, compare=False)
+    estimate_at_t: Optional[np.ndarray] = field(default=None, repr=False, compare=False)
+
+    def at(self, times) -> Tuple[np.ndarray, np.ndarray]:
+        """(x, v) at any times within the computed part of [0, T], by quintic Hermite
+        interpolation with the equation of motion at the vertices (fem_dual.dense)."""
+        times = np.atleast_1d(np.asarray(times, dtype=float))
+        if len(self.t) < 2 or times.min() < self.t[0] or times.max() > self.t[-1]:
+            span = f"[{self.t[0]:g}, {self.t[-1]:g}]" if len(self.t) else "nothing"
+            raise InputError(f"times outside the computed part of the motion ({span})")
+        return hermite_at(self.scene_object, self.t, self.x, self.v, times)
+
+    def write_csv(self, path) -> None:
+        """Columns t, x1..xn, v1..vn at the output times."""
+        n = self.x.shape[1] if self.x.ndim == 2 else 0
+        head = ",".join(["t"] + [f"x{i + 1}" for i in range(n)] + [f"v{i + 1}" for i in range(n)])
+        np.savetxt(path, np.column_stack([self.t, self.x, self.v]), delimiter=",", header=head,
+                   comments="", fmt="%.17g")
 
     @property
     def final(self) -> Dict[str, List[float]]:
@@ -100,7 +120,7 @@ class RunResult:
             "solver": self.solver, "timings": self.timings, "output_files": self.output_files,
             "staging": self.staging, "recovery": self.recovery,
             "error_estimate": self.error_estimate, "estimate": self.estimate,
-            "tolerance": self.tolerance,
+            "tolerance": self.tolerance, "t_eval": self.t_eval,
         }
         if arrays:
             out.update(t=self.t.tolist(), x=self.x.tolist(), v=self.v.tolist())
@@ -112,8 +132,10 @@ class _Accumulator:
 
     def __init__(self, config: RunConfig):
         tic = time.perf_counter()
-        self.flow = config.scene.reference(config.x0, config.v0)
-        self.reference_s = time.perf_counter() - tic
+        self.flow = None
+        if config.reference != "none":
+            self.flow = config.scene.reference(config.x0, config.v0)
+        self.reference_s = 0.0 if self.flow is None else time.perf_counter() - tic
         self.t: List[np.ndarray] = []
         self.x: List[np.ndarray] = []
         self.v: List[np.ndarray] = []
@@ -124,20 +146,23 @@ class _Accumulator:
         self.est_x = self.est_v = 0.0
         self.est_final = (0.0, 0.0)
         self.estimates: List[Dict[str, float]] = []
+        self.est_rows: List[np.ndarray] = []  # the estimate at every output time
 
     def add(self, slab: "AcceptedSlab") -> None:
         t0, dt, vals = slab.t0, slab.dt, slab.values
         keep = slice(0 if slab.index == 0 else 1, None)  # each junction once: the end of the slab
         t = t0 + dt * vals.s[keep]
         x, v = vals.x[keep], vals.v[keep]
-        tic = time.perf_counter()
-        x_ref, v_ref = self.flow(t)
-        self.reference_s += time.perf_counter() - tic
-        ex, ev = np.abs(x - x_ref).max(axis=1), np.abs(v - v_ref).max(axis=1)
-        self.err_x, self.err_v = max(self.err_x, ex.max()), max(self.err_v, ev.max())
-        self.final_err = (float(ex[-1]), float(ev[-1]))
+        if self.flow is not None:
+            tic = time.perf_counter()
+            x_ref, v_ref = self.flow(t)
+            self.reference_s += time.perf_counter() - tic
+            ex, ev = np.abs(x - x_ref).max(axis=1), np.abs(v - v_ref).max(axis=1)
+            self.err_x, self.err_v = max(self.err_x, ex.max()), max(self.err_v, ev.max())
+            self.final_err = (float(ex[-1]), float(ev[-1]))
         self.t.append(t), self.x.append(x), self.v.append(v)
         est_x, est_v = slab.estimate.reported(keep)
+        self.est_rows.append(np.maximum(est_x, est_v))
         self.est_x, self.est_v = max(self.est_x, est_x.max()), max(self.est_v, est_v.max())
         self.est_final = (float(est_x[-1]), float(est_v[-1]))
         self.estimates.append(slab.estimate.record())
@@ -168,7 +193,7 @@ class _Accumulator:
                 "final_x": self.est_final[0], "final_v": self.est_final[1]}
 
     def error(self) -> Dict[str, Optional[float]]:
-        if not self.t:
+        if not self.t or self.flow is None:
             return {"x_max": None, "v_max": None, "final": None, "final_x": None, "final_v": None}
         return {"x_max": float(self.err_x), "v_max": float(self.err_v),
                 "final": max(self.final_err), "final_x": self.final_err[0],
@@ -647,13 +672,38 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool) -> RunResult:
             estimate=acc.estimate(),
             tolerance={"rtol": tol.rtol, "atol": tol.atol, "adaptive": tol.adaptive,
                        "scale_x": weights.scale_x, "scale_v": weights.scale_v})
+        if acc.est_rows:
+            result.estimate_at_t = np.concatenate(acc.est_rows)
         if failure is not None:
             result.status, result.message = "failed", str(failure)
     result = bcast(comm, result)
+    result.scene_object = config.scene
+    if config.t_eval is not None:
+        result.t_eval = _dense_output(result, config)
     if failure is not None:
         failure.partial = result
         raise failure
     return result
+
+
+def _dense_output(result: RunResult, config: RunConfig) -> Dict[str, Any]:
+    """The state at config.t_eval (those within the computed part), and its error against the
+    reference when there is one; the same on every rank."""
+    times = config.t_eval
+    done = times[times <= (result.t[-1] if len(result.t) else -1.0)]
+    out: Dict[str, Any] = {"t": done.tolist(), "x": [], "v": [], "error": None,
+                           "omitted": int(len(times) - len(done))}
+    if len(done) == 0 or len(result.t) < 2:
+        return out
+    x, v = result.at(done)
+    out.update(x=x.tolist(), v=v.tolist())
+    if config.reference != "none":
+        order = np.argsort(done, kind="stable")
+        x_ref, v_ref = config.scene.reference(config.x0, config.v0)(done[order])
+        ex = np.abs(x[order] - x_ref).max(initial=0.0)
+        ev = np.abs(v[order] - v_ref).max(initial=0.0)
+        out["error"] = {"x_max": float(ex), "v_max": float(ev)}
+    return out
 
 
 def run(config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD, progress: bool = False) -> RunResult:

@@ -378,28 +378,38 @@ class KroneckerSampler:
         self.s = np.linspace(0.0, 1.0, problem.time.cells + 1)
 
     def __call__(self) -> Optional[VertexValues]:
-        if self.p.comm.rank != 0:
+        """Collective; the values on rank 0, None elsewhere."""
+        linear = self.linear_part()
+        if linear is None:
             return None
-        return self.values(self.linear_part(), self.p.xbar, self.p.vbar)
+        return self.values(linear, self.p.xbar, self.p.vbar)
 
-    def linear_part(self) -> np.ndarray:
-        """(vertices, 4n): x, v, xi, eta at the vertices, linear in the slab's start state."""
+    def linear_part(self) -> Optional[np.ndarray]:
+        """(vertices, 4n): x, v, xi, eta at the vertices, linear in the slab's start state.
+        Collective: every rank computes the momenta of its own components, rank 0 gathers them
+        (None elsewhere)."""
         p, t = self.p, self.p.time
-        n, c = p.n, p.c
+        n = p.n
         Wc = p.W[t.cell_dofs]  # (cells, p + 1, 2n)
 
         def apply(X, W):  # an element matrix on every cell's (p + 1, n) block
             return np.einsum("ij,cjk->cik", X, W)
 
-        r_xi, r_eta = p.residual(t.element, Wc[..., :n], Wc[..., n:], affine=True, apply=apply)
-        x = np.empty((t.cells + 1, n))
-        mv = np.empty((t.cells + 1, n))
+        r_xi, r_eta = p.residual(t.element, Wc[..., :n], Wc[..., n:], affine=True, apply=apply,
+                                 cols=p.mine)
+        k = len(p.mine)
+        x = np.empty((t.cells + 1, k))
+        mv = np.empty((t.cells + 1, k))
         x[:-1], mv[:-1] = r_xi[:, 0], r_eta[:, 0]  # left ends of the cells: +r
         right_x, right_mv = -r_xi[:, -1], -r_eta[:, -1]  # right ends: -r
         x[1:-1] = 0.5 * (x[1:-1] + right_x[:-1])
         mv[1:-1] = 0.5 * (mv[1:-1] + right_mv[:-1])
         x[-1], mv[-1] = right_x[-1], right_mv[-1]
-        v = self.p.velocity(mv)
+        parts = p.comm.gather((x, mv), root=0)
+        if parts is None:
+            return None
+        x = np.concatenate([q[0] for q in parts], axis=1)
+        v = self.p.velocity(np.concatenate([q[1] for q in parts], axis=1))
         return np.hstack([x, v, p.W[::t.degree]])
 
     def values(self, linear: np.ndarray, xbar: np.ndarray, vbar: np.ndarray) -> VertexValues:
@@ -437,8 +447,9 @@ class KroneckerSuperposition:
                 p.set_slab(z[:n], z[n:], dt)
                 self.solver.solve()
                 self.basis_solves += 1
-                if p.comm.rank == 0:
-                    basis.append(self.sampler.linear_part())
+                linear = self.sampler.linear_part()  # collective
+                if linear is not None:
+                    basis.append(linear)
             self._bases[dt] = np.stack(basis) if basis else None
             ends = None
             if basis:  # the slab map: end states (x, v) of the unit start states

@@ -16,7 +16,9 @@ SCENE_ARGS = {"ziegler": dict(T=6.0, cells=20, degree=3, slabs=3),
               "curl3d-ufl": dict(T=2.0, cells=20, degree=3, slabs=2),
               "curl2d": dict(T=2.0, cells=20, degree=3, slabs=4),
               "curl2d-ufl": dict(T=2.0, cells=20, degree=3, slabs=4),
-              "curl2d-lifted": dict(T=2.0, cells=20, degree=3, slabs=4)}
+              "curl2d-lifted": dict(T=2.0, cells=20, degree=3, slabs=4),
+              "force": dict(params={"F": "-x - a*y**3, a*x - y", "a": "0.5"}, T=2.0, cells=20,
+                            degree=3, slabs=2, x0="1,0", v0="0,0.5")}
 
 
 def test_every_scene_is_covered():
