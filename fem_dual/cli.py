@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import signal
 import sys
 from typing import List, Optional, Sequence
@@ -160,25 +161,34 @@ def _check_files(comm: MPI.Comm, args) -> dict:
 
     files = {}
     if args.csv is not None:
-        parent = Path(args.csv).parent
-        if not parent.is_dir() or Path(args.csv).is_dir():
-            raise InputError(f"csv={args.csv!r}: not a file in an existing directory")
-        files["csv"] = Path(args.csv)
+        csv = Path(args.csv)
+        if (not str(args.csv).strip() or not csv.parent.is_dir() or csv.is_dir()
+                or not os.access(csv.parent, os.W_OK)):
+            raise InputError(f"--csv {args.csv!r}: not a writable file in an existing directory")
+        if args.plot is not None and csv.resolve() == Path(args.plot).resolve():
+            raise InputError(f"--csv and --plot name the same path {args.csv!r}")
+        files["csv"] = csv
     if args.plot is not None:
-        files["plot"] = check_output_dir_on_root(comm, args.plot)
+        files["plot"] = check_output_dir_on_root(comm, args.plot, "--plot")
     return files
 
 
-def _write_files(comm: MPI.Comm, result: RunResult, files: dict) -> None:
-    """The CSV and the pictures of a run (rank 0), also of the completed part of a failed run."""
-    if comm.rank != 0 or len(result.t) == 0:
-        return
-    if "csv" in files:
-        result.write_csv(files["csv"])
-    if "plot" in files:
-        from fem_dual.plots import write_plots
+def _write_files(comm: MPI.Comm, result: RunResult, files: dict) -> Optional[str]:
+    """The CSV and the pictures of a run (rank 0), also of the completed part of a failed run;
+    why they could not be written (the same on every rank), or None."""
+    problem = None
+    if comm.rank == 0 and len(result.t) > 0:
+        try:
+            if "csv" in files:
+                result.write_csv(files["csv"])
+                result.output_files.append(str(files["csv"]))
+            if "plot" in files:
+                from fem_dual.plots import write_plots
 
-        result.output_files += [str(p) for p in write_plots(result, files["plot"])]
+                result.output_files += [str(p) for p in write_plots(result, files["plot"])]
+        except OSError as exc:
+            problem = f"could not write {exc.filename or 'the output'}: {exc.strerror or exc}"
+    return comm.bcast(problem, root=0)
 
 
 def _summary(result: RunResult) -> str:
@@ -328,7 +338,12 @@ def main(argv: Optional[Sequence[str]] = None, comm: MPI.Comm = MPI.COMM_WORLD) 
             from fem_dual.scenes import load_scene_file
 
             load_scene_file(args.scene_file)
-        params = dict(_key_value(p, "--param") for p in getattr(args, "param", []))
+        params = {}
+        for item in getattr(args, "param", []):
+            key, value = _key_value(item, "--param")
+            if key in params:
+                raise InputError(f"--param {key} is given twice ({params[key]!r} and {value!r})")
+            params[key] = value
         if args.command == "bench":
             return _bench(args, params, comm)
         if args.command == "flutter":
@@ -339,8 +354,9 @@ def main(argv: Optional[Sequence[str]] = None, comm: MPI.Comm = MPI.COMM_WORLD) 
         if args.F is not None:
             if args.scene != "force":
                 raise InputError(f"--F gives the force of scene force, not of {args.scene}")
+            if "F" in params:
+                raise InputError("the force is given twice: --F and --param F=...")
             params["F"] = args.F
-        files = _check_files(comm, args)
         config = RunConfig.create(args.scene, params, T=args.T, cells=args.cells,
                                   degree=args.degree, slabs=args.slabs, x0=args.x0, v0=args.v0,
                                   out=args.out, petsc=petsc, max_halvings=args.max_halvings,
@@ -349,6 +365,7 @@ def main(argv: Optional[Sequence[str]] = None, comm: MPI.Comm = MPI.COMM_WORLD) 
                                   rtol=args.rtol, atol=args.atol, base=args.base,
                                   coordinates=args.coordinates, reference=args.reference,
                                   t_eval=args.t_eval)
+        files = _check_files(comm, args)  # after validation: bad input writes nothing
         result = run(config, comm, progress=not args.json and sys.stderr.isatty())
     except InputError as exc:
         print0(comm, f"fem-dual: error: {_one_line(exc)}", file=sys.stderr)
@@ -356,11 +373,18 @@ def main(argv: Optional[Sequence[str]] = None, comm: MPI.Comm = MPI.COMM_WORLD) 
     except SolveError as exc:
         print0(comm, f"fem-dual: solve failed: {_one_line(exc)}", file=sys.stderr)
         if exc.partial is not None and args.command == "run":
-            _write_files(comm, exc.partial, files)
+            problem = _write_files(comm, exc.partial, files)
+            if problem:
+                print0(comm, f"fem-dual: error: {_one_line(problem)}", file=sys.stderr)
             if args.json and comm.rank == 0:
                 exc.partial.write_json(sys.stdout)
         return SolveError.exit_status
-    _write_files(comm, result, files)
+    problem = _write_files(comm, result, files)
+    if problem:  # the run is done; its output is not: a failure, not bad input
+        print0(comm, f"fem-dual: error: {_one_line(problem)}", file=sys.stderr)
+        if args.json and comm.rank == 0:
+            result.write_json(sys.stdout)
+        return SolveError.exit_status
     if args.json:
         if comm.rank == 0:
             result.write_json(sys.stdout)

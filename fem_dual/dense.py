@@ -17,7 +17,7 @@ import numpy as np
 
 from fem_dual.base_state import force_jacobian
 
-__all__ = ["rates", "hermite_at"]
+__all__ = ["rates", "hermite_at", "hermite_estimate"]
 
 
 def rates(scene, x: np.ndarray, v: np.ndarray) -> Tuple[np.ndarray, ...]:
@@ -57,22 +57,34 @@ def _hermite_basis(m: int) -> np.ndarray:
     return np.linalg.inv(A)
 
 
-_BASIS = _hermite_basis(4)  # values and three derivatives at both ends: degree 7
+_BASES = {m: _hermite_basis(m) for m in (3, 4)}  # degrees 5 and 7
 
 
-def _septic(s: np.ndarray, h: np.ndarray, left, right) -> np.ndarray:
-    """The degree-7 polynomial with the derivatives `left`, `right` (4 arrays each: value and
-    three time derivatives, rows per point) at s = 0 and 1 of intervals of length h."""
+def _hermite(s: np.ndarray, h: np.ndarray, left, right) -> np.ndarray:
+    """The polynomial of degree 2m - 1 with the m derivatives `left`, `right` (value and time
+    derivatives, rows per point) at s = 0 and 1 of intervals of length h."""
+    m = len(left)
     hh = h[:, None]
     data = [d * hh ** k for k, d in enumerate(left)] + [d * hh ** k for k, d in enumerate(right)]
-    powers = s[:, None] ** np.arange(8)  # (points, 8)
-    weights = powers @ _BASIS  # (points, 8): the basis functions at s
-    return sum(weights[:, [k]] * data[k] for k in range(8))
+    weights = (s[:, None] ** np.arange(2 * m)) @ _BASES[m]  # the basis functions at s
+    return sum(weights[:, [k]] * data[k] for k in range(2 * m))
 
 
 def hermite_at(scene, t: np.ndarray, x: np.ndarray, v: np.ndarray,
                times: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     """(x, v) at `times` (within [t[0], t[-1]]) from the vertex values (t, x, v)."""
+    return _dense(scene, t, x, v, times)[:2]
+
+
+def hermite_estimate(scene, t: np.ndarray, x: np.ndarray, v: np.ndarray,
+                     times: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(x, v, interpolation error estimate) at `times`: the estimate is the distance to the
+    Hermite of degree 5 (one derivative fewer at each end), an upper estimate of the degree-7
+    error, which matters where the vertices are more accurate than O(h^8) (p >= 5)."""
+    return _dense(scene, t, x, v, times, estimate=True)
+
+
+def _dense(scene, t, x, v, times, estimate: bool = False):
     times = np.asarray(times, dtype=float)
     k = np.clip(np.searchsorted(t, times, side="right") - 1, 0, len(t) - 2)
     h = t[k + 1] - t[k]
@@ -80,7 +92,11 @@ def hermite_at(scene, t: np.ndarray, x: np.ndarray, v: np.ndarray,
     ends = np.unique(np.concatenate([k, k + 1]))
     a, j, snap = (np.empty_like(x) for _ in range(3))
     a[ends], j[ends], snap[ends] = rates(scene, x[ends], v[ends])
-    xs = _septic(s, h, (x[k], v[k], a[k], j[k]), (x[k + 1], v[k + 1], a[k + 1], j[k + 1]))
-    vs = _septic(s, h, (v[k], a[k], j[k], snap[k]),
-                 (v[k + 1], a[k + 1], j[k + 1], snap[k + 1]))
-    return xs, vs
+    xs = _hermite(s, h, (x[k], v[k], a[k], j[k]), (x[k + 1], v[k + 1], a[k + 1], j[k + 1]))
+    vs = _hermite(s, h, (v[k], a[k], j[k], snap[k]),
+                  (v[k + 1], a[k + 1], j[k + 1], snap[k + 1]))
+    if not estimate:
+        return xs, vs, None
+    x5 = _hermite(s, h, (x[k], v[k], a[k]), (x[k + 1], v[k + 1], a[k + 1]))
+    v5 = _hermite(s, h, (v[k], a[k], j[k]), (v[k + 1], a[k + 1], j[k + 1]))
+    return xs, vs, np.maximum(np.abs(xs - x5).max(axis=1), np.abs(vs - v5).max(axis=1))

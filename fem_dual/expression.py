@@ -355,9 +355,9 @@ def _check_text(text: str) -> str:
     if len(text) > MAX_LENGTH:
         raise _error(f"text of {len(text)} characters is longer than {MAX_LENGTH}")
     for column, ch in enumerate(text, start=1):
-        if not (" " <= ch <= "~" or ch == "\t"):
+        if not (" " <= ch <= "~" or ch == "\t") or ch == "#":
             raise _error(f"character {ch!r} (U+{ord(ch):04X}) at column {column} is not allowed; "
-                         "expressions are printable ASCII")
+                         "expressions are printable ASCII without comments")
     if not text.strip():
         raise _error("empty expression")
     return text

@@ -25,20 +25,24 @@ __all__ = ["OutputDir", "XdmfSeries", "write_polyline", "check_output_dir",
            "check_output_dir_on_root"]
 
 
-def check_output_dir(path: "str | os.PathLike") -> Path:
-    """The output directory, created if missing; InputError if it cannot hold our files."""
+def check_output_dir(path: "str | os.PathLike", option: str = "--out") -> Path:
+    """The output directory, created if missing; InputError (naming `option`) if it cannot
+    hold our files."""
+    if not str(path).strip():
+        raise InputError(f"{option} {str(path)!r} is not a directory name")
     out = Path(path)
     try:
         out.mkdir(parents=True, exist_ok=True)
         probe = tempfile.mkdtemp(prefix=".fem-dual-probe-", dir=out)
         os.rmdir(probe)
     except OSError as exc:
-        raise InputError(f"--out {str(path)!r} is not a writable directory "
+        raise InputError(f"{option} {str(path)!r} is not a writable directory "
                          f"({exc.strerror or exc})") from None
     return out
 
 
-def check_output_dir_on_root(comm, path: "str | os.PathLike") -> Optional[Path]:
+def check_output_dir_on_root(comm, path: "str | os.PathLike",
+                             option: str = "--out") -> Optional[Path]:
     """check_output_dir on rank 0 (which writes), its InputError raised on every rank, so no rank
     goes on into collective work alone. The directory on rank 0, None elsewhere."""
     from fem_dual.mpi import bcast
@@ -46,7 +50,7 @@ def check_output_dir_on_root(comm, path: "str | os.PathLike") -> Optional[Path]:
     out, problem = None, None
     if comm.rank == 0:
         try:
-            out = check_output_dir(path)
+            out = check_output_dir(path, option)
         except InputError as exc:
             problem = str(exc)
     problem = bcast(comm, problem)

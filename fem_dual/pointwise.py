@@ -74,8 +74,9 @@ class PointwiseDtP:
             out = self._eval(self.cells)
             G, Gx = out[..., :n], out[..., n:n + n * n].reshape(out.shape[:2] + (n, n))
             t = out[..., -1]
-            eig = np.linalg.eigvalsh(0.5 * (Gx + np.swapaxes(Gx, -1, -2)))
-            ratio = eig[..., 0] / np.abs(eig).max(axis=-1)
+            with np.errstate(all="ignore"):  # NaN ratios count as bad below
+                eig = np.linalg.eigvalsh(0.5 * (Gx + np.swapaxes(Gx, -1, -2)))
+                ratio = eig[..., 0] / np.abs(eig).max(axis=-1)
             bad = ~(ratio > BRANCH_TOL)
             if bad.any():
                 where = np.unravel_index(np.argmin(np.where(np.isnan(ratio), -np.inf, ratio)),

@@ -71,7 +71,10 @@ class SlabProblem:
             self.predictor = Predictor(scene)
             space = vector_space(msh, degree + 1, n)
             self.xbar, self.vbar = fem.Function(space), fem.Function(space)
-            self._base_times = space.tabulate_dof_coordinates()[:, 0]
+            # node coordinates of the scalar space: the blocked space's nodes, in its order
+            # (0.5.2 cannot tabulate them for a one-component VectorElement)
+            nodes = fem.FunctionSpace(msh, ("Lagrange", degree + 1))
+            self._base_times = nodes.tabulate_dof_coordinates()[:, 0]
         else:
             self.xbar, self.vbar = constant(msh, zero), constant(msh, zero)
 

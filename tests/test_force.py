@@ -177,3 +177,72 @@ def test_a_bad_scene_file_is_one_line_and_exit_2(tmp_path, capsys, text, piece):
     assert main(["run", "whatever", "--scene-file", str(path)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and piece in err
+
+
+# -- regressions from a hostile run of this issue's features -----------------------------------
+def test_one_component_on_the_predictor_base():
+    r = run(RunConfig.create("force", {"F": "-x"}, T=0.5, cells=10, x0="0.5", base="predictor"))
+    assert r.status == "ok" and r.error["x_max"] < 1e-8
+
+
+def test_repeated_and_unsorted_t_eval_times():
+    r = run(RunConfig.create("force", {"F": "-x"}, T=0.5, cells=10, x0="1",
+                             t_eval="0.3,0.1,0.1,0.25"))
+    assert r.t_eval["t"] == [0.3, 0.1, 0.1, 0.25] and r.t_eval["x"][1] == r.t_eval["x"][2]
+    assert r.t_eval["error"]["x_max"] < 1e-8
+
+
+def test_the_estimate_covers_the_t_eval_times_at_high_degree():
+    """p = 5: the vertices beat the Hermite's O(h^8); the estimate must still cover the
+    values between them (it missed them by 240x before)."""
+    r = run(RunConfig.create("force", {"F": "-x - a*y**3, a*x - y", "a": "0.5"}, T=4, cells=1,
+                             degree=5, rtol=1e-9, x0="1,0", v0="0,0.5",
+                             t_eval="0.1:3.9:39"))
+    actual = max(r.t_eval["error"]["x_max"], r.t_eval["error"]["v_max"])
+    assert r.t_eval["error_estimate"] >= actual and r.error_estimate >= actual
+
+
+def test_at_rejects_nan_and_accepts_nothing():
+    r = run(RunConfig.create("ziegler", T=1, cells=4))
+    with pytest.raises(InputError, match="finite"):
+        r.at([float("nan")])
+    assert r.at([])[0].shape == (0, 2)
+
+
+@pytest.mark.serial
+@pytest.mark.parametrize("args,piece", [
+    (["--F", "-x # , -y", "--x0", "1"], "#"),
+    (["--F", "-k*x", "--param", "k=1", "--param", "k=3", "--x0", "1"], "twice"),
+    (["--F", "-k*x", "--param", "F=-x", "--param", "k=1", "--x0", "1"], "twice"),
+    (["--F", "-x", "--x0", "1", "--plot", ""], "--plot"),
+])
+def test_more_bad_input_is_one_line_and_exit_2(args, piece, capsys, tmp_path):
+    assert main(["run", "force", "--T", "0.5", "--cells", "4"] + args) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and piece in err
+
+
+@pytest.mark.serial
+def test_bad_input_creates_no_plot_directory(tmp_path, capsys):
+    target = tmp_path / "never"
+    assert main(["run", "force", "--F", "-x +", "--x0", "1", "--plot", str(target)]) == 2
+    assert not target.exists()
+
+
+@pytest.mark.serial
+def test_an_unwritable_csv_is_exit_3_with_one_line(capsys):
+    assert main(["run", "force", "--F", "-x", "--x0", "1", "--T", "0.5", "--cells", "4",
+                 "--csv", "/dev/full"]) == 3
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "could not write" in err
+
+
+@pytest.mark.serial
+@pytest.mark.parametrize("name,text,piece", [("swirl.txt", "x = 1", "not a Python file"),
+                                             ("exits.py", "import sys; sys.exit(0)",
+                                              "SystemExit")])
+def test_scene_files_that_are_not_scenes(tmp_path, capsys, name, text, piece):
+    path = tmp_path / name
+    path.write_text(text)
+    assert main(["run", "whatever", "--scene-file", str(path)]) == 2
+    assert piece in capsys.readouterr().err

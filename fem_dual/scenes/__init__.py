@@ -33,18 +33,23 @@ def load_scene_file(path: str) -> List[str]:
     """Run a Python file that declares scenes (subclasses of Scene or ForceScene with a `name`)
     and register them; returns their names. The file is the user's own code, run as such; a
     file that cannot be read, fails, or declares no scene is InputError (one line)."""
+    import contextlib
     import importlib.util
     import inspect
+    import sys
     from pathlib import Path
 
     file = Path(path)
     if not file.is_file():
         raise InputError(f"scene-file={path!r} is not a file")
+    if file.suffix != ".py":
+        raise InputError(f"scene-file={path!r} is not a Python file (*.py)")
     spec = importlib.util.spec_from_file_location(f"fem_dual_user_{file.stem}", file)
     module = importlib.util.module_from_spec(spec)
-    try:
-        spec.loader.exec_module(module)
-    except Exception as exc:  # the user's code: any failure is bad input, named
+    try:  # the file's prints go to stderr: stdout carries the JSON
+        with contextlib.redirect_stdout(sys.stderr):
+            spec.loader.exec_module(module)
+    except (Exception, SystemExit) as exc:  # the user's code: any failure is bad input, named
         raise InputError(f"scene-file={path!r} failed: {type(exc).__name__}: {exc}") from None
     found = [cls for _, cls in inspect.getmembers(module, inspect.isclass)
              if issubclass(cls, Scene) and cls.__module__ == module.__name__
