@@ -54,6 +54,9 @@ def _add_problem_arguments(p: argparse.ArgumentParser, slabs_help: str) -> None:
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="fem-dual", description="Particle dynamics under curl forces through a "
                      "dual variational principle, solved in space-time with FEniCSx.")
+    from fem_dual import __version__
+
+    parser.add_argument("--version", action="version", version=f"fem-dual {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
     r = sub.add_parser("run", help="solve one scene and compare it with its reference")

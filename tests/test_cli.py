@@ -175,3 +175,13 @@ def test_bench_runs_on_a_tiny_configuration(tmp_path, capsys):
         assert len(list(csv.DictReader(f))) == len(rows)
     png = (tmp_path / "bench.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000
+
+
+@pytest.mark.serial
+def test_version(capsys):
+    from fem_dual import __version__
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--version"])
+    assert exit_info.value.code == 0
+    assert capsys.readouterr().out.strip() == f"fem-dual {__version__}"
