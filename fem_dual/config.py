@@ -112,8 +112,8 @@ class RunConfig:
     reference: str = "auto"  # auto: the scene's reference; none: skip it (error is null)
     t_eval: Optional[np.ndarray] = None  # extra output times (dense output, fem_dual.dense)
 
-    @property
-    def base_state(self) -> str:
+    @functools.cached_property
+    def base_state(self) -> str:  # cached: stiff_at_start differentiates the force
         """The base state in use: `base`, with auto resolved. Linear scenes with energy weights
         (stiff ones): zero, residual-free, damps what the slabs do not resolve. Nonlinear scenes
         stiff at the start: the predictor (fem_dual.base_state). Otherwise the start state,
