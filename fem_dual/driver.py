@@ -71,6 +71,7 @@ class RunResult:
     t_eval: Optional[Dict[str, Any]] = None
     scene_object: Any = field(default=None, repr=False, compare=False)
     estimate_at_t: Optional[np.ndarray] = field(default=None, repr=False, compare=False)
+    error_at_t: Optional[np.ndarray] = field(default=None, repr=False, compare=False)
 
     def at(self, times) -> Tuple[np.ndarray, np.ndarray]:
         """(x, v) at any times within the computed part of [0, T], by quintic Hermite
@@ -152,6 +153,7 @@ class _Accumulator:
         self.est_final = (0.0, 0.0)
         self.estimates: List[Dict[str, float]] = []
         self.est_rows: List[np.ndarray] = []  # the estimate at every output time
+        self.err_rows: List[np.ndarray] = []  # the reference error at every output time
 
     def add(self, slab: "AcceptedSlab") -> None:
         t0, dt, vals = slab.t0, slab.dt, slab.values
@@ -163,6 +165,7 @@ class _Accumulator:
             x_ref, v_ref = self.flow(t)
             self.reference_s += time.perf_counter() - tic
             ex, ev = np.abs(x - x_ref).max(axis=1), np.abs(v - v_ref).max(axis=1)
+            self.err_rows.append(np.maximum(ex, ev))
             self.err_x, self.err_v = max(self.err_x, ex.max()), max(self.err_v, ev.max())
             self.final_err = (float(ex[-1]), float(ev[-1]))
         self.t.append(t), self.x.append(x), self.v.append(v)
@@ -336,10 +339,7 @@ class Simulation:
             moved = self.solve_slab(dz, t0, dt)
             return None if moved is None else np.hstack([moved.x, moved.v])
         eps = self.solver.tangent(z0, dz)
-        try:
-            moved = self.sampler()
-        finally:
-            self.solver.restore(z0)
+        moved = self._sample_and_restore(z0)
         if moved is None:
             return None
         return (np.hstack([moved.x, moved.v]) - np.hstack([values.x, values.v])) / eps
@@ -354,13 +354,18 @@ class Simulation:
         if self.scene.linear:
             return None
         self.solver.newton_step()
-        try:
-            moved = self.sampler()
-        finally:
-            self.solver.restore(z0)
+        moved = self._sample_and_restore(z0)
         if moved is None:
             return None
         return np.hstack([moved.x - values.x, moved.v - values.v])
+
+    def _sample_and_restore(self, z0: np.ndarray) -> Optional[VertexValues]:
+        """The vertex values of the perturbed dual state, then the converged slab from z0 back
+        (whatever the sampling raises)."""
+        try:
+            return self.sampler()
+        finally:
+            self.solver.restore(z0)
 
     def unresolved(self, z0: np.ndarray, dt: float) -> Optional[np.ndarray]:
         """(2n,): the part of z0 in modes the slab does not resolve, which the zero base damps
@@ -679,6 +684,8 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool) -> RunResult:
                        "scale_x": weights.scale_x, "scale_v": weights.scale_v})
         if acc.est_rows:
             result.estimate_at_t = np.concatenate(acc.est_rows)
+        if acc.err_rows:
+            result.error_at_t = np.concatenate(acc.err_rows)
         if failure is not None:
             result.status, result.message = "failed", str(failure)
     result = bcast(comm, result)

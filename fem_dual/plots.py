@@ -90,11 +90,9 @@ def write_plots(result, directory: Path) -> List[Path]:
     if result.estimate_at_t is not None:
         ax.semilogy(t, np.maximum(result.estimate_at_t, 1e-17), "-", lw=1.5,
                     label="estimated error (no reference needed)")
-    if result.error.get("x_max") is not None and result.scene_object is not None:
-        x_ref, v_ref = result.scene_object.reference(np.asarray(result.x0),
-                                                     np.asarray(result.v0))(t)
-        err = np.maximum(np.abs(x - x_ref).max(axis=1), np.abs(v - v_ref).max(axis=1))
-        ax.semilogy(t, np.maximum(err, 1e-17), "-", lw=1, label="error against the reference")
+    if result.error_at_t is not None:
+        ax.semilogy(t, np.maximum(result.error_at_t, 1e-17), "-", lw=1,
+                    label="error against the reference")
     ax.set_xlabel("time t")
     ax.set_ylabel("max error over x and v")
     ax.set_title(title)
