@@ -36,6 +36,7 @@ The name ``e`` is not Euler's number (write ``exp(1)``); it may be a parameter.
 """
 from __future__ import annotations
 
+import abc
 import ast
 import dataclasses
 import io
@@ -211,20 +212,23 @@ class _Call:
 _Node = Union[_Num, _Coord, _Param, _Neg, _Bin, _Call]
 
 
-class _Backend:
+class _Backend(abc.ABC):
     """One target of the compiled tree (numpy, UFL, the constant check): how leaves are made
     and how an operation (an operator or one of `functions`) is applied."""
 
     functions: Mapping[str, Callable] = {}
 
+    @abc.abstractmethod
     def number(self, value: Union[int, float]) -> Any:
-        raise NotImplementedError
+        """The leaf of a number."""
 
+    @abc.abstractmethod
     def coordinate(self, index: int) -> Any:
-        raise NotImplementedError
+        """The leaf of a coordinate."""
 
+    @abc.abstractmethod
     def parameter(self, name: str) -> Any:
-        raise NotImplementedError
+        """The leaf of a parameter."""
 
     def apply(self, operation: Callable, operands: tuple, node: _Node) -> Any:
         return operation(*operands)

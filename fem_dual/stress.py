@@ -23,6 +23,7 @@ from fem_dual.config import RunConfig
 from fem_dual.driver import RunResult, Simulation
 from fem_dual.errors import InputError, SolveError
 from fem_dual.flutter import critical_load, eigen_rate, growth_rate
+from fem_dual.scenes.column import lowest_mode, scaled_column
 
 __all__ = ["Case", "Row", "CASES", "run_case", "stress", "table"]
 
@@ -213,13 +214,9 @@ def _versus_start_base(att: Attempt, comm: MPI.Comm):
 
 
 def _scaled_column(links: int, P: float, **kw) -> RunConfig:
-    """N links scaled like a continuous column (l = 1/N, c = N, m = 1/N), from its lowest mode."""
-    params = {"links": str(links), "l": repr(1 / links), "c": repr(float(links)),
-              "m": repr(1 / links), "P": repr(P)}
-    scene = RunConfig.create("column", params).scene
-    lam, U = np.linalg.eig(np.linalg.solve(scene.mass_matrix(), scene.stiffness_matrix()))
-    x0 = np.real(U[:, int(np.argmin(np.abs(lam)))])
-    return RunConfig.create(scene, x0=0.1 * x0 / np.abs(x0).max(), v0=np.zeros(links), **kw)
+    """The scaled column (fem_dual.scenes.column) from its lowest mode."""
+    scene = scaled_column(links, P)
+    return RunConfig.create(scene, x0=lowest_mode(scene), v0=np.zeros(links), **kw)
 
 
 # -- the cases ---------------------------------------------------------------------------------

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from ufl import as_vector
 
-from forms.predual import isotropic_quadratic
+from forms.predual import isotropic_aux
 
 __all__ = ["dtp", "force", "aux_potential", "velocity_map", "position_equations"]
 
@@ -24,8 +24,7 @@ def force(x, c):
     return -c["k"] * as_vector([x[0] * x[1] ** 2, x[0] ** 3])
 
 
-def aux_potential(dx, dv, c):
-    return isotropic_quadratic(dx, dv, c["alpha"], c["beta"])
+aux_potential = isotropic_aux
 
 
 def velocity_map(xi, deta, vbar, c):

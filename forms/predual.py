@@ -12,7 +12,8 @@ from typing import Callable
 import ufl
 from ufl import dot
 
-__all__ = ["predual_lagrangian", "dual_hamiltonian", "boundary_term", "isotropic_quadratic"]
+__all__ = ["predual_lagrangian", "dual_hamiltonian", "boundary_term", "isotropic_quadratic",
+           "isotropic_aux"]
 
 Force = Callable[[ufl.core.expr.Expr], ufl.core.expr.Expr]
 AuxH = Callable[[ufl.core.expr.Expr, ufl.core.expr.Expr], ufl.core.expr.Expr]
@@ -53,3 +54,8 @@ def boundary_term(xi, eta, M, x0, v0):
 def isotropic_quadratic(dx, dv, alpha, beta):
     """H = alpha/2 |dx|^2 + beta/2 |dv|^2 (the auxiliary function of sections 3.1 and 3.2)."""
     return 0.5 * alpha * dot(dx, dx) + 0.5 * beta * dot(dv, dv)
+
+
+def isotropic_aux(dx, dv, c):
+    """isotropic_quadratic with the scene constants alpha and beta (a force scene's H)."""
+    return isotropic_quadratic(dx, dv, c["alpha"], c["beta"])

@@ -8,6 +8,7 @@ from mpi4py import MPI
 
 from fem_dual import RunConfig, SolveError, run
 from fem_dual.cli import main
+from fem_dual.scenes.column import lowest_mode, scaled_column
 
 SMALL = dict(T=4.0, slabs=2, cells=6, degree=3)
 
@@ -65,14 +66,9 @@ def test_auto_takes_the_kronecker_path_from_five_dofs():
 
 
 def _scaled_column(N, P):
-    """N links scaled like a continuous column (l = 1/N, c = N, m = 1/N) and its lowest mode."""
-    params = {"links": str(N), "l": repr(1 / N), "c": repr(float(N)), "m": repr(1 / N),
-              "P": repr(P)}
-    scene = RunConfig.create("column", params).scene
-    lam, U = np.linalg.eig(np.linalg.solve(scene.mass_matrix(), scene.stiffness_matrix()))
-    k = int(np.argmin(np.abs(lam)))
-    x0 = np.real(U[:, k])
-    return scene, 0.1 * x0 / np.abs(x0).max()
+    """N links scaled like a continuous column and its lowest mode."""
+    scene = scaled_column(N, P)
+    return scene, lowest_mode(scene)
 
 
 @pytest.mark.mpi

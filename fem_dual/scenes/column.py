@@ -11,7 +11,7 @@ from fem_dual.errors import InputError
 from fem_dual.scenes.base import per_link_field, require_positive
 from fem_dual.scenes.linear import LinearScene
 
-__all__ = ["Column"]
+__all__ = ["Column", "scaled_column_params", "scaled_column", "lowest_mode"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,3 +69,23 @@ class Column(LinearScene):
 
     def damping_matrix(self) -> np.ndarray:
         return column_forms.joint_matrix(self._per_link("d"))
+
+
+def scaled_column_params(links: int, P: float = 0.0) -> dict:
+    """Parameters of N links scaled like a continuous column (L = 1, EI = 1, mu = 1: l = 1/N,
+    c = N, m = 1/N), whose lowest frequency and flutter load approach Beck's column."""
+    return {"links": str(links), "l": repr(1.0 / links), "c": repr(float(links)),
+            "m": repr(1.0 / links), "P": repr(P)}
+
+
+def scaled_column(links: int, P: float = 0.0) -> Column:
+    """The scaled column of scaled_column_params, validated."""
+    return Column.from_params(scaled_column_params(links, P))
+
+
+def lowest_mode(scene: LinearScene, amplitude: float = 0.1) -> np.ndarray:
+    """The real eigenvector of M^-1 K with the smallest |eigenvalue|, scaled to max |x| =
+    amplitude: a start state that keeps the motion in the resolved part of the spectrum."""
+    lam, U = np.linalg.eig(np.linalg.solve(scene.mass_matrix(), scene.stiffness_matrix()))
+    x0 = np.real(U[:, int(np.argmin(np.abs(lam)))])
+    return amplitude * x0 / np.abs(x0).max()

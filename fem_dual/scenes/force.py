@@ -19,13 +19,9 @@ from fem_dual.expression import ForceExpression, check_parameter_names, parse_fo
 from fem_dual.scenes.base import parse_number, require_positive
 from fem_dual.scenes.curl import ForceScene
 from forms import implicit
-from forms.predual import isotropic_quadratic
+from forms.predual import isotropic_aux
 
 __all__ = ["ExpressionForce"]
-
-
-def _aux_potential(dx, dv, c):
-    return isotropic_quadratic(dx, dv, c["alpha"], c["beta"])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -81,8 +77,7 @@ class ExpressionForce(ForceScene):
 
     @functools.cached_property
     def forms(self):  # type: ignore[override]
-        expression = self.expression
-        return implicit.make(lambda x, c: expression.ufl(x, c), _aux_potential)
+        return implicit.make(self.expression.ufl, isotropic_aux)
 
     @property
     def default_x0(self) -> Tuple[float, ...]:  # type: ignore[override]
