@@ -1,8 +1,10 @@
 """Command line: `fem-dual run | bench | flutter | stress | scenes`.
 
-Exit status: 0 success, 2 bad input (one line on stderr naming the value), 3 a failed solve (the
-slabs completed before it are kept, in the output files and in the JSON with status "failed");
-`stress` exits 1 when a case did not behave as it must.
+Exit status: 0 success, 2 bad input (one line on stderr naming the value), 3 a failed solve or a
+failed write (the slabs completed before it are kept, in the output files and in the JSON with
+status "failed"), 130/143 stopped by SIGINT/SIGTERM after a slab (kept alike, status
+"interrupted"), 1 an internal error (under MPI it ends every rank); `stress` exits 1 when a case
+did not behave as it must.
 """
 from __future__ import annotations
 
@@ -11,10 +13,12 @@ import json
 import os
 import signal
 import sys
-from typing import List, Optional, Sequence
+from contextlib import contextmanager
+from typing import Iterator, List, Optional, Sequence
 
 from mpi4py import MPI
 
+from fem_dual import faults
 from fem_dual.config import RunConfig
 from fem_dual.driver import RunResult, run
 from fem_dual.errors import InputError, SolveError
@@ -105,7 +109,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--csv", help="write t, x1..xn, v1..vn at the output times to this file")
     r.add_argument("--plot", help="write PNG pictures of the motion, phase portrait, error and "
                    "H_d into this directory")
-    r.add_argument("--out", help="write XDMF output into this directory")
+    r.add_argument("--out", help="write XDMF output into this directory (streamed: it covers "
+                   "the completed slabs at every moment)")
+    r.add_argument("--resume", action="store_true", help="go on from the last slab an earlier "
+                   "run with the same options wrote into --out")
     r.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     r.add_argument("--petsc-option", action="append", default=[], metavar="KEY=VALUE",
                    help="PETSc option under the solver prefix dual_<scene>_, e.g. ksp_type=cg")
@@ -192,6 +199,41 @@ def _write_files(comm: MPI.Comm, result: RunResult, files: dict) -> Optional[str
         except OSError as exc:
             problem = f"could not write {exc.filename or 'the output'}: {exc.strerror or exc}"
     return comm.bcast(problem, root=0)
+
+
+def _kept(result: RunResult) -> str:
+    """What a stopped or failed run kept: its slabs, their span and where they are."""
+    if len(result.t) == 0:
+        return "; no slab was completed"
+    slabs = len(result.slab_lengths)
+    text = f"; kept {slabs} slabs (t = {result.t[0]:g} .. {result.t[-1]:g})"
+    if result.output_slabs is None:
+        return text
+    where = os.path.dirname(result.output_files[0]) if result.output_files else "--out"
+    if result.output_slabs == slabs:
+        return f"{text} in {where}"
+    return f"{text}; {where} holds the first {result.output_slabs}"
+
+
+@contextmanager
+def _stdout_to_stderr(active: bool) -> Iterator[None]:
+    """While active, what C libraries (PETSc monitors and views, -help) print on stdout goes
+    to stderr, so that `--json` prints one JSON object on stdout and nothing else."""
+    if not active:
+        yield
+        return
+    import ctypes
+
+    sys.stdout.flush()
+    libc = ctypes.CDLL(None)
+    saved = os.dup(1)
+    os.dup2(2, 1)
+    try:
+        yield
+    finally:
+        libc.fflush(None)
+        os.dup2(saved, 1)
+        os.close(saved)
 
 
 def _summary(result: RunResult) -> str:
@@ -368,20 +410,35 @@ def main(argv: Optional[Sequence[str]] = None, comm: MPI.Comm = MPI.COMM_WORLD) 
                                   rtol=args.rtol, atol=args.atol, base=args.base,
                                   coordinates=args.coordinates, reference=args.reference,
                                   t_eval=args.t_eval)
+        if args.resume and args.out is None:
+            raise InputError("--resume needs --out: the directory of the run to go on with")
         files = _check_files(comm, args)  # after validation: bad input writes nothing
-        result = run(config, comm, progress=not args.json and sys.stderr.isatty())
+        with faults.graceful_signals(), _stdout_to_stderr(args.json):
+            result = run(config, comm, progress=not args.json and sys.stderr.isatty(),
+                         resume=args.resume)
     except InputError as exc:
         print0(comm, f"fem-dual: error: {_one_line(exc)}", file=sys.stderr)
         return InputError.exit_status
     except SolveError as exc:
-        print0(comm, f"fem-dual: solve failed: {_one_line(exc)}", file=sys.stderr)
+        interrupted = isinstance(exc, faults.Interrupted)
+        what = "stopped" if interrupted else "solve failed"
+        kept = _kept(exc.partial) if exc.partial is not None else ""
+        print0(comm, f"fem-dual: {what}: {_one_line(exc)}{kept}", file=sys.stderr)
         if exc.partial is not None and args.command == "run":
             problem = _write_files(comm, exc.partial, files)
             if problem:
                 print0(comm, f"fem-dual: error: {_one_line(problem)}", file=sys.stderr)
             if args.json and comm.rank == 0:
                 exc.partial.write_json(sys.stdout)
-        return SolveError.exit_status
+        return exc.exit_status
+    except Exception as exc:  # a bug: say so, and end every rank (others may wait for this one)
+        import traceback
+
+        traceback.print_exc()
+        print(f"fem-dual: internal error on rank {comm.rank}: {_one_line(exc)}", file=sys.stderr)
+        if comm.size > 1:
+            comm.Abort(1)
+        return 1
     problem = _write_files(comm, result, files)
     if problem:  # the run is done; its output is not: a failure, not bad input
         print0(comm, f"fem-dual: error: {_one_line(problem)}", file=sys.stderr)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import signal
 import time
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional, Tuple
@@ -23,8 +24,10 @@ from fem_dual.errors import InputError, SolveError
 from fem_dual.modal import ModalBasis
 from fem_dual.kronecker import (KroneckerProblem, KroneckerSampler, KroneckerSolver,
                                 KroneckerSuperposition)
-from fem_dual.mpi import bcast
-from fem_dual.output import OutputDir, check_output_dir_on_root, XdmfSeries, write_polyline
+from fem_dual.mpi import allreduce, bcast
+from fem_dual.output import check_output_dir_on_root
+from fem_dual.sinks import AcceptedSlab, Accumulator, ProgressSink, Restart, XdmfSink
+from fem_dual import faults
 from fem_dual.newton import NewtonSlabSolver
 from fem_dual.problem import SlabProblem
 from fem_dual.recovery import VertexSampler, VertexValues
@@ -69,6 +72,7 @@ class RunResult:
     estimate: Dict[str, Any] = field(default_factory=dict)
     tolerance: Dict[str, Any] = field(default_factory=dict)
     t_eval: Optional[Dict[str, Any]] = None
+    output_slabs: Optional[int] = None  # slabs the --out files hold (None: no --out)
     scene_object: Any = field(default=None, repr=False, compare=False)
     estimate_at_t: Optional[np.ndarray] = field(default=None, repr=False, compare=False)
     error_at_t: Optional[np.ndarray] = field(default=None, repr=False, compare=False)
@@ -127,85 +131,11 @@ class RunResult:
             "staging": self.staging, "recovery": self.recovery,
             "error_estimate": self.error_estimate, "estimate": self.estimate,
             "tolerance": self.tolerance, "t_eval": self.t_eval,
+            "output_slabs": self.output_slabs,
         }
         if arrays:
             out.update(t=self.t.tolist(), x=self.x.tolist(), v=self.v.tolist())
         return out
-
-
-class _Accumulator:
-    """Vertex arrays of the whole run and their errors against the reference (rank 0 only)."""
-
-    def __init__(self, config: RunConfig):
-        tic = time.perf_counter()
-        self.flow = None
-        if config.reference != "none":
-            self.flow = config.scene.reference(config.x0, config.v0)
-        self.reference_s = 0.0 if self.flow is None else time.perf_counter() - tic
-        self.t: List[np.ndarray] = []
-        self.x: List[np.ndarray] = []
-        self.v: List[np.ndarray] = []
-        self.err_x = 0.0
-        self.err_v = 0.0
-        self.final_err = (float("nan"), float("nan"))
-        self.ham: List[Dict[str, float]] = []
-        self.est_x = self.est_v = 0.0
-        self.est_final = (0.0, 0.0)
-        self.estimates: List[Dict[str, float]] = []
-        self.est_rows: List[np.ndarray] = []  # the estimate at every output time
-        self.err_rows: List[np.ndarray] = []  # the reference error at every output time
-
-    def add(self, slab: "AcceptedSlab") -> None:
-        t0, dt, vals = slab.t0, slab.dt, slab.values
-        keep = slice(0 if slab.index == 0 else 1, None)  # each junction once: the end of the slab
-        t = t0 + dt * vals.s[keep]
-        x, v = vals.x[keep], vals.v[keep]
-        if self.flow is not None:
-            tic = time.perf_counter()
-            x_ref, v_ref = self.flow(t)
-            self.reference_s += time.perf_counter() - tic
-            ex, ev = np.abs(x - x_ref).max(axis=1), np.abs(v - v_ref).max(axis=1)
-            self.err_rows.append(np.maximum(ex, ev))
-            self.err_x, self.err_v = max(self.err_x, ex.max()), max(self.err_v, ev.max())
-            self.final_err = (float(ex[-1]), float(ev[-1]))
-        self.t.append(t), self.x.append(x), self.v.append(v)
-        est_x, est_v = slab.estimate.reported(keep)
-        self.est_rows.append(np.maximum(est_x, est_v))
-        self.est_x, self.est_v = max(self.est_x, est_x.max()), max(self.est_v, est_v.max())
-        self.est_final = (float(est_x[-1]), float(est_v[-1]))
-        self.estimates.append(slab.estimate.record())
-        h = vals.hamiltonian
-        scale = max(np.abs(h).max(), np.finfo(float).tiny)
-        self.ham.append({"min": float(h.min()), "max": float(h.max()),
-                         "drift": float((h.max() - h.min()) / scale)})
-
-    def arrays(self, n: int):
-        if not self.t:
-            return np.zeros(0), np.zeros((0, n)), np.zeros((0, n))
-        return np.concatenate(self.t), np.concatenate(self.x), np.concatenate(self.v)
-
-    def hamiltonian(self) -> Dict[str, Any]:
-        if not self.ham:
-            return {"min": None, "max": None, "drift": None, "per_slab": []}
-        return {"min": min(h["min"] for h in self.ham), "max": max(h["max"] for h in self.ham),
-                "drift": max(h["drift"] for h in self.ham), "per_slab": self.ham}
-
-    def estimate_max(self) -> Optional[float]:
-        """The estimated max-norm error of the state over all output times."""
-        return max(self.est_x, self.est_v) if self.t else None
-
-    def estimate(self) -> Dict[str, Optional[float]]:
-        if not self.t:
-            return {"x_max": None, "v_max": None, "final": None}
-        return {"x_max": self.est_x, "v_max": self.est_v, "final": max(self.est_final),
-                "final_x": self.est_final[0], "final_v": self.est_final[1]}
-
-    def error(self) -> Dict[str, Optional[float]]:
-        if not self.t or self.flow is None:
-            return {"x_max": None, "v_max": None, "final": None, "final_x": None, "final_v": None}
-        return {"x_max": float(self.err_x), "v_max": float(self.err_v),
-                "final": max(self.final_err), "final_x": self.final_err[0],
-                "final_v": self.final_err[1]}
 
 
 def _solver_record(solver, prefix: str) -> Dict[str, Any]:
@@ -214,13 +144,6 @@ def _solver_record(solver, prefix: str) -> Dict[str, Any]:
                 "residual_norms": list(solver.residual_norms),
                 "residual_histories": [list(h) for h in solver.histories]}
     return {"kind": "ksp", "prefix": prefix, "ksp_iterations": list(solver.iterations)}
-
-
-def _progress_bar(T: float):
-    from tqdm import tqdm
-
-    return tqdm(total=T, unit="t", desc="slabs", leave=False,
-                bar_format="{l_bar}{bar}| t={n:.4g}/{total:.4g} [{elapsed}<{remaining}, {rate_fmt}]")
 
 
 class Simulation:
@@ -383,7 +306,7 @@ class Simulation:
                     "another solution branch")
         return None
 
-    def run(self, config: RunConfig, progress: bool = False) -> RunResult:
+    def run(self, config: RunConfig, progress: bool = False, resume: bool = False) -> RunResult:
         """Solve the dual problem slab by slab, recover the primal motion, estimate its error,
         compare with the reference (see `run`)."""
         if ((config.scene.name, config.degree, config.slab_cells, config.recovery,
@@ -393,7 +316,7 @@ class Simulation:
             raise ValueError("the configuration does not match the compiled simulation")
         self.begin(config)
         self.companion.begin(config)
-        return _run_slabs(self, config, progress)
+        return _run_slabs(self, config, progress, resume)
 
 
 def check_resolution(rate: Optional[float], dt: float, cells: int, degree: int) -> None:
@@ -435,60 +358,6 @@ def _insane(vals: VertexValues, bound: Optional[GrowthBound], t: float) -> Optio
         return ("the motion outgrows the exact flow's bound (noise amplified in modes the "
                 "slabs do not resolve); use more slabs or cells per slab")
     return None
-
-
-@dataclass
-class AcceptedSlab:
-    """What the sinks receive for every accepted slab (rank 0)."""
-
-    index: int
-    t0: float
-    dt: float
-    values: VertexValues
-    estimate: SlabEstimate
-
-
-class _XdmfSink:
-    """The dual fields and the recovered motion per slab into `out/<scene>.xdmf`, the trajectory
-    polyline at the end (rank 0)."""
-
-    def __init__(self, config: RunConfig, name: str):
-        self.outdir = OutputDir(config.out)
-        self.name = name
-        self.series: Optional[XdmfSeries] = None
-        self.seconds = 0.0
-
-    def add(self, slab: AcceptedSlab) -> None:
-        tic = time.perf_counter()
-        vals = slab.values
-        if self.series is None:
-            self.series = XdmfSeries(self.outdir.file(f"{self.name}.xdmf"), slab.dt * vals.s)
-        self.series.write(slab.t0, {"t": slab.t0 + slab.dt * vals.s, "xi": vals.xi,
-                                    "eta": vals.eta, "x_hat": vals.x, "v_hat": vals.v,
-                                    "hamiltonian": vals.hamiltonian,
-                                    "error_estimate": np.maximum(*slab.estimate.reported())})
-        self.seconds += time.perf_counter() - tic
-
-    def close(self, t: np.ndarray, x: np.ndarray, v: np.ndarray) -> List[str]:
-        tic = time.perf_counter()
-        if self.series is not None:
-            self.series.close()
-            write_polyline(self.outdir.file(f"{self.name}_trajectory.xdmf"), x,
-                           {"t": t, "v_hat": v})
-        files = [str(p) for p in self.outdir.commit()]
-        self.seconds += time.perf_counter() - tic
-        return files
-
-
-class _ProgressSink:
-    def __init__(self, T: float):
-        self.bar = _progress_bar(T)
-
-    def add(self, slab: AcceptedSlab) -> None:
-        self.bar.update(slab.dt)
-
-    def close(self) -> None:
-        self.bar.close()
 
 
 def _solves(sim: Simulation) -> int:
@@ -569,14 +438,73 @@ def _advice(config: RunConfig) -> str:
     return "loosen --rtol, or raise --cells or --degree"
 
 
-def _run_slabs(sim: Simulation, config: RunConfig, progress: bool) -> RunResult:
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return f"{type(exc).__name__}: {text}" if not isinstance(exc, OSError) else text
+
+
+def _on_root(comm: MPI.Comm, action) -> Optional[str]:
+    """Run `action()` on rank 0; why it failed (one line), or None, on every rank: an error
+    on rank 0 (a full disk, a bug) ends the run on all ranks instead of leaving them waiting
+    in the next collective."""
+    problem = None
+    if comm.rank == 0:
+        try:
+            action()
+        except Exception as exc:  # noqa: BLE001 -- shared, then raised on every rank
+            problem = _one_line(exc)
+    return problem
+
+
+class _LoopState:
+    """Where the slab loop stands: slab index, start state and its estimated error, lengths."""
+
+    def __init__(self, config: RunConfig):
+        self.k = 0
+        self.z = np.concatenate([config.x0, config.v0])
+        self.d = np.zeros_like(self.z)  # estimated global error of the state at the slab start
+        self.lengths: List[float] = []
+        self.resumed_from: Optional[Dict[str, float]] = None
+
+    def resume(self, comm: MPI.Comm, restart: Optional[Restart], acc: Optional[Accumulator],
+               weights: Optional[ErrorWeights], schedule: SlabSchedule) -> None:
+        """Go on after the slabs of `restart` (rank 0's; shared with every rank)."""
+        state = None
+        if comm.rank == 0 and restart.slabs:
+            for slab in restart.slabs:
+                acc.add(slab)
+            last = restart.slabs[-1]
+            weights.scale_x, weights.scale_v = last.scales
+            state = (len(restart.slabs), np.concatenate([last.values.x[-1], last.values.v[-1]]),
+                     last.estimate.glob[-1].copy(), [s.dt for s in restart.slabs],
+                     last.schedule, last.t0 + last.dt)
+        state = bcast(comm, state)
+        if state is None:
+            return
+        self.k, self.z, self.d, self.lengths, (schedule.pos, schedule.length), t = state
+        self.resumed_from = {"slab": self.k, "t": t}
+
+
+def _run_slabs(sim: Simulation, config: RunConfig, progress: bool,
+               resume: bool = False) -> RunResult:
     tic = time.perf_counter()
     comm, scene = sim.comm, sim.scene
     root = comm.rank == 0
     n = scene.n
-    acc = _Accumulator(config) if root else None
-    xdmf = _XdmfSink(config, scene.name) if (root and config.out is not None) else None
-    bar = _ProgressSink(config.T) if (progress and root) else None
+    acc = Accumulator(config) if root else None
+    restart = None
+    if resume:  # bad or mismatched files are bad input, on every rank
+        problem = None
+        if root:
+            try:
+                restart = Restart(config, scene.name)
+            except InputError as exc:
+                problem = str(exc)
+        problem = bcast(comm, problem)
+        if problem:
+            raise InputError(problem)
+    xdmf = XdmfSink(config, scene.name, restart) if (root and config.out is not None) else None
+    bar = ProgressSink(config.T) if (progress and root) else None
     sinks = [s for s in (acc, xdmf, bar) if s is not None]
     timings = {"compile_s": sim.setup_s if sim._fresh else 0.0, "solve_s": 0.0,
                "estimate_s": 0.0, "recovery_s": 0.0, "output_s": 0.0}
@@ -590,16 +518,16 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool) -> RunResult:
     bound = GrowthBound(scene, config.x0, config.v0) if (guarded and root) else None
     schedule = _schedule(config, sim.cells, start_rate if rate is None else rate)
     order = 2 * config.degree  # the local error per unit of time goes like dt^(2p)
-    z = np.concatenate([config.x0, config.v0])
-    d = np.zeros(2 * n)  # estimated global error of the state at the slab start
-    lengths: List[float] = []
+    state = _LoopState(config)
+    if resume:
+        state.resume(comm, restart, acc, weights, schedule)
     rejected: List[Dict[str, Any]] = []
     failure: Optional[SolveError] = None
-    k = 0
     while not schedule.done():
+        k, z, d = state.k, state.z, state.d
         t0, dt = schedule.current()
         t1 = time.perf_counter()
-        estimate = None
+        verdict = None
         try:
             if guarded:
                 check_resolution(rate, dt, sim.cells, config.degree)
@@ -613,12 +541,14 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool) -> RunResult:
             lost = sim.unresolved(z, dt)
             companion = sim.companion.solve_slab(z, t0, dt)
             timings["estimate_s"] += time.perf_counter() - t2
-            verdict = None
-            if root:
-                action, err, reason, estimate = _judge(vals, companion, algebraic, psi, lost,
-                                                       weights, bound, t0, dt, config.T)
-                verdict = (action, err, reason)
-            action, err, reason = bcast(comm, verdict)
+
+            def judge() -> None:
+                nonlocal verdict
+                verdict = _judge(vals, companion, algebraic, psi, lost, weights, bound, t0, dt,
+                                 config.T)
+            problem = _on_root(comm, judge)
+            action, err, reason = bcast(comm, verdict[:3] if root else None) if not problem \
+                else ("error", None, problem)
         except SolveError as exc:
             action, err, reason = "retry", None, str(exc)
         timings["solve_s"] += time.perf_counter() - t1
@@ -626,21 +556,40 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool) -> RunResult:
             rejected.append({"t0": t0, "dt": dt, "reason": reason})
             continue
         if action != "accept":
-            what = "cannot vouch for the answer" if action == "refuse" else "no shorter slab left"
-            failure = SolveError(f"slab {k} (t = {t0:g} .. {t0 + dt:g}): {reason}; {what}; "
-                                 f"{_advice(config)}", slab=k)
+            what = {"refuse": "; cannot vouch for the answer", "retry": "; no shorter slab left",
+                    "error": ""}[action]
+            failure = SolveError(f"slab {k} (t = {t0:g} .. {t0 + dt:g}): {reason}{what}"
+                                 + ("" if action == "error" else f"; {_advice(config)}"), slab=k)
             break
-        if root:
-            slab = AcceptedSlab(k, t0, dt, vals, estimate)
+        schedule.accept(step_factor(err, order))
+        state.lengths.append(dt)
+        state.k += 1
+        nxt = None
+
+        def record() -> None:
+            nonlocal nxt
+            weights.record(vals.x, vals.v)
+            slab = AcceptedSlab(k, t0, dt, vals, verdict[3], (schedule.pos, schedule.length),
+                                (weights.scale_x, weights.scale_v))
+            nxt = (np.concatenate([vals.x[-1], vals.v[-1]]), verdict[3].glob[-1].copy())
             for sink in sinks:
                 sink.add(slab)
-            weights.record(vals.x, vals.v)
-            z_next = np.concatenate([vals.x[-1], vals.v[-1]])
-            d_next = estimate.glob[-1].copy()
-        lengths.append(dt)
-        z, d = bcast(comm, (z_next, d_next) if root else None)
-        schedule.accept(step_factor(err, order))
-        k += 1
+        problem = _on_root(comm, record)
+        signum = faults.requested()
+        if comm.size > 1:
+            signum = allreduce(comm, signum, "max")
+        shared = ((*nxt, problem) if nxt is not None else (z, d, problem)) if root else None
+        state.z, state.d, problem = bcast(comm, shared)
+        if problem:
+            where = f" ({config.out})" if config.out is not None else ""
+            failure = SolveError(f"slab {k} (t = {t0:g} .. {t0 + dt:g}): writing the output "
+                                 f"failed{where}: {problem}", slab=k)
+            break
+        if signum and not schedule.done():
+            name = signal.Signals(signum).name
+            failure = faults.Interrupted(f"interrupted by {name} after slab {k} (t = "
+                                         f"{t0 + dt:g} of T = {config.T:g})", signum, slab=k)
+            break
     if bar is not None:
         bar.close()
 
@@ -648,9 +597,19 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool) -> RunResult:
     if root:
         t, x, v = acc.arrays(n)
         files: List[str] = []
+        output_slabs = None
         if xdmf is not None:
-            files = xdmf.close(t, x, v)
+            try:
+                files = xdmf.close(t, x, v)
+            except Exception as exc:  # noqa: BLE001 -- a failure of its own, reported as one
+                closing = f"writing the output failed ({config.out}): {_one_line(exc)}"
+                if failure is None:
+                    failure = SolveError(closing, slab=state.k)
+                else:
+                    failure.args = (f"{failure}; {closing}",)
+                files = xdmf.files_on_disk()
             timings["output_s"] = xdmf.seconds
+            output_slabs = xdmf.slabs_written
         timings["reference_s"] = acc.reference_s
         timings["total_s"] = time.perf_counter() - tic + timings["compile_s"]
         record = _solver_record(sim.solver, sim.prefix)
@@ -668,7 +627,9 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool) -> RunResult:
         record["slab_solves"] = _solves(sim)
         record["companion_solves"] = _solves(sim.companion)
         record["tangent_solves"] = sim.tangent_solves
+        record["resumed_from"] = state.resumed_from
         tol = config.tolerance
+        lengths = state.lengths
         result = RunResult(
             scene=scene.name, parameters=scene.parameters(), T=config.T, cells=config.cells,
             degree=config.degree, slabs=config.slabs if config.rtol is None else len(lengths),
@@ -682,12 +643,16 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool) -> RunResult:
             estimate=acc.estimate(),
             tolerance={"rtol": tol.rtol, "atol": tol.atol, "adaptive": tol.adaptive,
                        "scale_x": weights.scale_x, "scale_v": weights.scale_v})
+        result.output_slabs = output_slabs
         if acc.est_rows:
             result.estimate_at_t = np.concatenate(acc.est_rows)
         if acc.err_rows:
             result.error_at_t = np.concatenate(acc.err_rows)
         if failure is not None:
-            result.status, result.message = "failed", str(failure)
+            interrupted = isinstance(failure, faults.Interrupted)
+            result.status = "interrupted" if interrupted else "failed"
+            result.message = str(failure)
+    failure = _shared_failure(comm, failure)
     result = bcast(comm, result)
     result.scene_object = config.scene
     if config.t_eval is not None:
@@ -696,6 +661,19 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool) -> RunResult:
         failure.partial = result
         raise failure
     return result
+
+
+def _shared_failure(comm: MPI.Comm, failure: Optional[SolveError]) -> Optional[SolveError]:
+    """Rank 0's failure (a failed close is known there only) on every rank."""
+    if comm.size == 1:
+        return failure
+    what = None if failure is None else (
+        str(failure), failure.slab, getattr(failure, "signum", None))
+    what = comm.bcast(what if comm.rank == 0 else None, root=0)
+    if what is None:
+        return None
+    message, slab, signum = what
+    return faults.Interrupted(message, signum, slab) if signum else SolveError(message, slab)
 
 
 def _dense_output(result: RunResult, config: RunConfig) -> Dict[str, Any]:
@@ -725,17 +703,28 @@ def _dense_output(result: RunResult, config: RunConfig) -> Dict[str, Any]:
     return out
 
 
-def run(config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD, progress: bool = False) -> RunResult:
+def run(config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD, progress: bool = False,
+        resume: bool = False) -> RunResult:
     """Solve the dual problem slab by slab, recover the primal motion, compare with the reference.
+
+    With `resume`, go on from the last slab an earlier run of the same options wrote into
+    `config.out` (the end state equals an uninterrupted run's).
 
     Nonlinear scenes retry a slab whose Newton (or DtP map) fails with half its length, up to
     `config.max_halvings` times; `progress` shows a bar over the slabs on stderr (rank 0).
 
     Raises:
-        SolveError: a slab failed; `partial` holds the result of the slabs completed before it,
-            whose output files (if any) are complete.
+        SolveError: a slab failed, or writing the output did; `partial` holds the result of the
+            slabs completed before, whose output files (if any) are readable.
+        fem_dual.faults.Interrupted: SIGINT/SIGTERM (with fem_dual.faults.graceful_signals)
+            stopped the run after a slab; `partial` as for SolveError.
     """
+    if not isinstance(config, RunConfig):
+        raise InputError(f"config must be a RunConfig (RunConfig.create(...)), not "
+                         f"{type(config).__name__}")
+    if resume and config.out is None:
+        raise InputError("resume needs the output directory of the run to go on with (--out)")
     quiet_jit_logging()
     if config.out is not None:  # before any work: a bad --out is bad input, on every rank
         check_output_dir_on_root(comm, config.out)
-    return Simulation.for_config(config, comm).run(config, progress)
+    return Simulation.for_config(config, comm).run(config, progress, resume)

@@ -1,35 +1,51 @@
-"""Output files: an XDMF time series over slabs, the trajectory as a polyline in configuration
-space, and the discipline that files are complete or absent.
+"""Output files: an XDMF time series over slabs streamed while the run goes, the trajectory as a
+polyline in configuration space.
 
 DOLFINx 0.5.2's XDMFFile writes 1D meshes with topology type `PolyLine`, which Debian's meshio
-cannot read, and its meshio TimeSeriesWriter puts the HDF5 file in the working directory; so the
-XDMF (XML + HDF5 through h5py) is written here, in the layout meshio's TimeSeriesReader and
-ParaView's XDMF readers expect: the slab mesh once, then one time step per slab.
+cannot read, and its meshio TimeSeriesWriter rewrites everything per step; so the XDMF (XML +
+HDF5 through h5py) is written here, on rank 0, from values gathered there:
 
-Everything is written on rank 0 from values gathered there, into a hidden temporary directory
-inside the output directory; `commit()` moves the finished files into place.
+- `<name>.h5` holds the slab mesh once and, per field, one dataset extended along its first axis
+  (one row per slab); `/restart` holds what `--resume` needs to go on from the last slab.
+- `<name>.xdmf` holds the mesh grid and a temporal collection whose step k reads row k of each
+  field (an XDMF HyperSlab, which ParaView reads; `read_series` here reads it too).
+
+Rows are buffered and flushed at most every FLUSH_SECONDS (and at the end): the HDF5 file is
+opened, extended and closed, then the new steps are written over the XML's closing tags in one
+write. So the cost per slab is constant, and at every moment the directory holds a closed HDF5
+file and an XML that names only rows already in it: what a `kill -9` leaves behind is readable
+and holds every slab flushed so far.
 """
 from __future__ import annotations
 
+import errno
+import json
 import os
-import shutil
 import tempfile
+import time
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Dict, List, Mapping, Optional, Tuple
 
 import numpy as np
 
 from fem_dual.errors import InputError
 
-__all__ = ["OutputDir", "XdmfSeries", "write_polyline", "check_output_dir",
-           "check_output_dir_on_root"]
+__all__ = ["XdmfSeries", "write_polyline", "check_output_dir", "check_output_dir_on_root",
+           "read_series", "FLUSH_SECONDS", "series_files"]
+
+FLUSH_SECONDS = 0.5  # buffered slabs reach the disk at least this often
+FLUSH_ROWS_BYTES = 64 << 20  # ... or when the buffer holds this much
+SPACE_MARGIN = 1 << 18  # free bytes kept beyond the data of a write (HDF5 metadata, chunks)
+CHUNK_BYTES = 8 * 2**12  # HDF5 chunk of an extended dataset (allocated whole)
+XML_ROW_BYTES = 400  # XML per field and slab (measured: about 330)
+_TAIL = "</Grid>\n</Domain>\n</Xdmf>\n"
 
 
 def check_output_dir(path: "str | os.PathLike", option: str = "--out") -> Path:
     """The output directory, created if missing; InputError (naming `option`) if it cannot
     hold our files."""
-    if not str(path).strip():
-        raise InputError(f"{option} {str(path)!r} is not a directory name")
+    if not isinstance(path, (str, os.PathLike)) or not str(path).strip():
+        raise InputError(f"{option} {path!r} is not a directory name")
     out = Path(path)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -59,28 +75,25 @@ def check_output_dir_on_root(comm, path: "str | os.PathLike",
     return out
 
 
-class OutputDir:
-    """A temporary directory inside `path` whose files are moved into `path` on commit."""
+def free_bytes(directory: Path) -> int:
+    """Bytes the file system of `directory` still gives an unprivileged writer."""
+    st = os.statvfs(directory)
+    return st.f_bavail * st.f_frsize
 
-    def __init__(self, path: "str | os.PathLike"):
-        self.path = check_output_dir(path)
-        self.tmp = Path(tempfile.mkdtemp(prefix=".fem-dual-tmp-", dir=self.path))
-        self.written: List[Path] = []
 
-    def file(self, name: str) -> Path:
-        return self.tmp / name
+def ensure_space(directory: Path, needed: int) -> None:
+    """OSError(ENOSPC) unless `directory` has `needed` bytes free: HDF5 is never let run into a
+    full disk (after a failed write it may leave the file damaged and the process unstable)."""
+    free = free_bytes(directory)
+    if free < needed:
+        raise OSError(errno.ENOSPC, f"{os.strerror(errno.ENOSPC)} ({free} bytes free in "
+                      f"{directory}, {needed} needed)")
 
-    def commit(self) -> List[Path]:
-        """Move every finished file into place (each rename atomic) and remove the temporary dir."""
-        for item in sorted(self.tmp.iterdir()):
-            target = self.path / item.name
-            os.replace(item, target)
-            self.written.append(target)
-        self.discard()
-        return self.written
 
-    def discard(self) -> None:
-        shutil.rmtree(self.tmp, ignore_errors=True)
+def series_files(out: Path, name: str) -> List[Path]:
+    """The files a run of scene `name` writes into `out` (series and trajectory)."""
+    return [out / f"{name}{tail}" for tail in (".xdmf", ".h5", "_trajectory.xdmf",
+                                               "_trajectory.h5")]
 
 
 def _points3(points: np.ndarray) -> np.ndarray:
@@ -93,10 +106,10 @@ def _points3(points: np.ndarray) -> np.ndarray:
     return np.hstack([points, np.zeros((len(points), 3 - points.shape[1]))])
 
 
-def _attribute_type(data: np.ndarray) -> str:
-    if data.ndim == 1:
-        return "Scalar"
-    return "Vector" if data.shape[1] == 3 else "Matrix"
+def _attribute_type(shape: tuple) -> str:
+    """Scalar per vertex, or a vector of any length per vertex (VTK's XDMF reader turns a
+    "Matrix" of one row per vertex into a single tuple, a "Vector" into one tuple per vertex)."""
+    return "Scalar" if len(shape) == 1 else "Vector"
 
 
 def _data_item(h5name: str, path: str, shape: tuple, integer: bool = False) -> str:
@@ -106,6 +119,19 @@ def _data_item(h5name: str, path: str, shape: tuple, integer: bool = False) -> s
             f'Precision="8">{h5name}:{path}</DataItem>')
 
 
+def _row_item(h5name: str, path: str, row: int, shape: tuple) -> str:
+    """Row `row` of the dataset `path` (rows, *shape): an XDMF HyperSlab (start, stride, count
+    per axis). The source's declared rows are row + 1, which it has since it was flushed."""
+    rank = 1 + len(shape)
+    start = " ".join(["%d" % row] + ["0"] * len(shape))
+    stride = " ".join(["1"] * rank)
+    count = " ".join(["1"] + [str(d) for d in shape])
+    dims = " ".join(str(d) for d in shape)
+    return (f'<DataItem ItemType="HyperSlab" Dimensions="{dims}" Type="HyperSlab">'
+            f'<DataItem Dimensions="3 {rank}" Format="XML">{start} {stride} {count}</DataItem>'
+            + _data_item(h5name, path, (row + 1,) + tuple(shape)) + "</DataItem>")
+
+
 def _grid_xml(h5name: str, prefix: str, npoints: int, ncells: int) -> List[str]:
     return [f'<Topology TopologyType="Polyline" NumberOfElements="{ncells}" NodesPerElement="2">',
             _data_item(h5name, f"/{prefix}/topology", (ncells, 2), integer=True), "</Topology>",
@@ -113,74 +139,264 @@ def _grid_xml(h5name: str, prefix: str, npoints: int, ncells: int) -> List[str]:
             _data_item(h5name, f"/{prefix}/geometry", (npoints, 3)), "</Geometry>"]
 
 
-def _attributes_xml(h5, h5name: str, group: str, data: Dict[str, np.ndarray]) -> List[str]:
-    lines = []
-    for name, values in data.items():
-        values = np.asarray(values, dtype=float)
-        h5.create_dataset(f"{group}/{name}", data=values)
-        lines += [f'<Attribute Name="{name}" AttributeType="{_attribute_type(values)}" '
-                  'Center="Node">', _data_item(h5name, f"/{group}/{name}", values.shape),
-                  "</Attribute>"]
-    return lines
-
-
-def _write_xml(path: Path, body: List[str]) -> None:
-    text = "\n".join(['<?xml version="1.0"?>',
+def _head_xml(body: List[str]) -> str:
+    return "\n".join(['<?xml version="1.0"?>',
                       '<Xdmf Version="3.0" xmlns:xi="http://www.w3.org/2001/XInclude">',
-                      "<Domain>", *body, "</Domain>", "</Xdmf>", ""])
-    path.write_text(text)
+                      "<Domain>", *body, ""])
+
+
+def _replace_atomically(path: Path, write) -> None:
+    """write(tmp_path), then rename over `path`: readers see the old file or the new one."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def _polyline(points: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    pts = _points3(points)
+    lines = np.column_stack([np.arange(len(pts) - 1), np.arange(1, len(pts))]).astype(np.int64)
+    return pts, lines
 
 
 class XdmfSeries:
-    """XDMF time series of the slab mesh: mesh once, then the vertex fields of each slab at the
-    slab's start time. The XML is rewritten after each slab, so the file is valid at every step.
+    """XDMF time series of the slab mesh, streamed: the mesh once, then the vertex fields of
+    each slab at the slab's start time, appended in O(1) per slab (see the module docstring).
 
     Args:
         path: the .xdmf file; its HDF5 data goes beside it with suffix .h5.
         points: mesh vertex coordinates (local time of the slab, in the first coordinate).
+        fields: name -> shape of one slab's values (vertices[, components]) shown in ParaView.
+        restart: name -> shape of one slab's restart record (kept in the HDF5 file only).
+        attrs: JSON-able facts stored with the file (the run's options, for --resume).
     """
 
-    def __init__(self, path: Path, points: np.ndarray):
+    def __init__(self, path: Path, points: np.ndarray, fields: Mapping[str, tuple],
+                 restart: Mapping[str, tuple], attrs: Mapping[str, object]):
         import h5py
 
-        self.path = path
-        self.h5name = path.with_suffix(".h5").name
-        self.h5 = h5py.File(path.with_suffix(".h5"), "w")
-        pts = _points3(points)
-        lines = np.column_stack([np.arange(len(pts) - 1), np.arange(1, len(pts))]).astype(np.int64)
-        self.h5.create_dataset("mesh/geometry", data=pts)
-        self.h5.create_dataset("mesh/topology", data=lines)
-        self.mesh_xml = (['<Grid Name="mesh" GridType="Uniform">']
-                         + _grid_xml(self.h5name, "mesh", len(pts), len(lines)) + ["</Grid>"])
-        self.steps: List[str] = []
+        self.path, self.h5path = path, path.with_suffix(".h5")
+        self.h5name = self.h5path.name
+        self.fields, self.restart = dict(fields), dict(restart)
+        pts, lines = _polyline(points)
+        for stale in (self.path, self.h5path):  # an earlier run's files are not this run's
+            if stale.exists():
+                stale.unlink()
 
-    def write(self, time: float, data: Dict[str, np.ndarray]) -> None:
-        k = len(self.steps)
-        ptr = ('xpointer(//Grid[@Name="mesh"]/*[self::Topology or self::Geometry])')
-        step = (['<Grid Name="step" GridType="Uniform">', f'<xi:include xpointer=\'{ptr}\'/>',
-                 f'<Time Value="{time!r}"/>']
-                + _attributes_xml(self.h5, self.h5name, f"step{k}", data) + ["</Grid>"])
-        self.steps.append("\n".join(step))
-        self.h5.flush()
-        _write_xml(self.path, self.mesh_xml + [
-            '<Grid Name="TimeSeries" GridType="Collection" CollectionType="Temporal">',
-            *self.steps, "</Grid>"])
+        def write_h5(tmp: Path) -> None:
+            with h5py.File(tmp, "w") as h5:
+                h5.create_dataset("mesh/geometry", data=pts)
+                h5.create_dataset("mesh/topology", data=lines)
+                h5.create_dataset("steps/time", shape=(0,), maxshape=(None,), chunks=(1024,),
+                                  dtype="f8")
+                for group, shapes in (("steps", self.fields), ("restart", self.restart)):
+                    for name, shape in shapes.items():
+                        rows = max(1, CHUNK_BYTES // 8 // max(1, int(np.prod(shape))))
+                        h5.create_dataset(f"{group}/{name}", shape=(0,) + tuple(shape),
+                                          maxshape=(None,) + tuple(shape),
+                                          chunks=(rows,) + tuple(shape), dtype="f8")
+                h5.attrs["fem_dual"] = json.dumps(attrs)
+
+        ensure_space(path.parent, SPACE_MARGIN + 2 * pts.nbytes)
+        _replace_atomically(self.h5path, write_h5)
+        self.broken = ""
+        mesh = (['<Grid Name="mesh" GridType="Uniform">']
+                + _grid_xml(self.h5name, "mesh", len(pts), len(lines)) + ["</Grid>",
+                '<Grid Name="TimeSeries" GridType="Collection" CollectionType="Temporal">'])
+        self._start_xml(_head_xml(mesh), steps=0)
+        self.buffer: List[Tuple[float, Dict[str, np.ndarray], Dict[str, np.ndarray]]] = []
+        self.buffered_bytes = 0
+        self.last_flush = time.monotonic()
+
+    def _start_xml(self, head: str, steps: int) -> None:
+        self.count = steps  # rows on disk, in the HDF5 file and the XML alike
+        text = head + "".join(self._step_xml(k, None) for k in range(steps))
+        _replace_atomically(self.path, lambda tmp: tmp.write_text(text + _TAIL))
+        self.tail_offset = len(text.encode())
+
+    @classmethod
+    def reopen(cls, path: Path) -> "XdmfSeries":
+        """The series of an earlier run in `path`, to go on appending (--resume). Its XML is
+        rewritten from the HDF5 rows (the XML may lag one flush behind them)."""
+        import h5py
+
+        self = cls.__new__(cls)
+        self.broken = ""
+        self.path, self.h5path = path, path.with_suffix(".h5")
+        self.h5name = self.h5path.name
+        with h5py.File(self.h5path, "r") as h5:
+            self.fields = {k: h5["steps"][k].shape[1:] for k in h5["steps"] if k != "time"}
+            self.restart = {k: h5["restart"][k].shape[1:] for k in h5["restart"]}
+            steps = len(h5["steps/time"])
+            self._times = h5["steps/time"][:]
+            npts, ncells = len(h5["mesh/geometry"]), len(h5["mesh/topology"])
+        mesh = (['<Grid Name="mesh" GridType="Uniform">']
+                + _grid_xml(self.h5name, "mesh", npts, ncells) + ["</Grid>",
+                '<Grid Name="TimeSeries" GridType="Collection" CollectionType="Temporal">'])
+        self._start_xml(_head_xml(mesh), steps)
+        del self._times
+        self.buffer, self.buffered_bytes = [], 0
+        self.last_flush = time.monotonic()
+        return self
+
+    def _step_xml(self, k: int, time_value: Optional[float]) -> str:
+        if time_value is None:
+            time_value = float(self._times[k])
+        ptr = 'xpointer(//Grid[@Name="mesh"]/*[self::Topology or self::Geometry])'
+        lines = ['<Grid Name="step" GridType="Uniform">', f'<xi:include xpointer=\'{ptr}\'/>',
+                 f'<Time Value="{time_value!r}"/>']
+        for name, shape in self.fields.items():
+            lines += [f'<Attribute Name="{name}" AttributeType="{_attribute_type(shape)}" '
+                      'Center="Node">', _row_item(self.h5name, f"/steps/{name}", k, shape),
+                      "</Attribute>"]
+        return "\n".join(lines + ["</Grid>", ""])
+
+    def write(self, time_value: float, data: Mapping[str, np.ndarray],
+              restart: Mapping[str, np.ndarray]) -> None:
+        """Buffer one slab's fields and restart record; flushed when due."""
+        data = {k: np.asarray(data[k], dtype=float) for k in self.fields}
+        restart = {k: np.asarray(restart[k], dtype=float) for k in self.restart}
+        self.buffer.append((float(time_value), data, restart))
+        self.buffered_bytes += sum(a.nbytes for a in (*data.values(), *restart.values()))
+        if (time.monotonic() - self.last_flush >= FLUSH_SECONDS
+                or self.buffered_bytes >= FLUSH_ROWS_BYTES):
+            self.flush()
+
+    def flush(self) -> None:
+        """Append the buffered slabs to the HDF5 file (closed again), then to the XML. On a write
+        error (OSError) what is on disk still covers the slabs flushed before."""
+        if not self.buffer:
+            return
+        if self.broken:
+            raise OSError(f"{self.h5path} was not written after an earlier failure: {self.broken}")
+        import h5py
+
+        first, rows = self.count, len(self.buffer)
+        row_bytes = self.buffered_bytes / rows + XML_ROW_BYTES * len(self.fields)
+        margin = SPACE_MARGIN + CHUNK_BYTES * (len(self.fields) + len(self.restart) + 1)
+        fit = int((free_bytes(self.h5path.parent) - margin) // row_bytes)
+        if fit < rows:  # keep what fits, then fail
+            self.buffer, rows = self.buffer[:max(fit, 0)], max(fit, 0)
+            self.broken = (f"{os.strerror(errno.ENOSPC)} (at most {max(fit, 0)} more slabs "
+                           f"fit in {self.h5path.parent})")
+        try:
+            if rows:
+                self._append_h5(h5py, first, rows)
+                self._append_xml("".join(self._step_xml(first + i, item[0])
+                                         for i, item in enumerate(self.buffer)))
+                self.count += rows
+        except Exception as exc:  # noqa: BLE001 -- HDF5 must not be touched again
+            self.broken = str(exc).split("\n")[0]
+        self.buffer, self.buffered_bytes = [], 0
+        self.last_flush = time.monotonic()
+        if self.broken:
+            raise OSError(f"writing {self.h5path.name} failed: {self.broken}; it holds the "
+                          f"first {self.count} slabs")
+
+    def _append_h5(self, h5py, first: int, rows: int) -> None:
+        with h5py.File(self.h5path, "a") as h5:
+            for group, key, names in (("steps", 1, self.fields), ("restart", 2, self.restart)):
+                for name in names:
+                    dset = h5[f"{group}/{name}"]
+                    dset.resize(first + rows, axis=0)
+                    dset[first:] = np.stack([item[key][name] for item in self.buffer])
+            times = h5["steps/time"]
+            times.resize(first + rows, axis=0)
+            times[first:] = [item[0] for item in self.buffer]
+
+    def _append_xml(self, text: str) -> None:
+        """Write `text` over the closing tags, then the tags again, in one write; on failure
+        put the closing tags back where they were."""
+        data = (text + _TAIL).encode()
+        fd = os.open(self.path, os.O_WRONLY)
+        try:
+            try:
+                written = os.pwrite(fd, data, self.tail_offset)
+                if written != len(data):
+                    raise OSError(28, os.strerror(28), str(self.path))
+            except OSError:
+                os.pwrite(fd, _TAIL.encode(), self.tail_offset)
+                os.ftruncate(fd, self.tail_offset + len(_TAIL))
+                raise
+        finally:
+            os.close(fd)
+        self.tail_offset += len(text.encode())
 
     def close(self) -> None:
-        self.h5.close()
+        """Flush what is buffered (nothing more after a failed write)."""
+        if self.broken:
+            self.buffer = []
+            return
+        self.flush()
 
 
 def write_polyline(path: Path, points: np.ndarray, data: Dict[str, np.ndarray]) -> None:
-    """A static XDMF polyline through `points` (configuration space) with vertex data."""
+    """A static XDMF polyline through `points` (configuration space) with vertex data; each of
+    the two files replaced atomically."""
     import h5py
 
     h5name = path.with_suffix(".h5").name
-    pts = _points3(points)
-    lines = np.column_stack([np.arange(len(pts) - 1), np.arange(1, len(pts))]).astype(np.int64)
-    with h5py.File(path.with_suffix(".h5"), "w") as h5:
-        h5.create_dataset("mesh/geometry", data=pts)
-        h5.create_dataset("mesh/topology", data=lines)
-        body = (['<Grid Name="trajectory" GridType="Uniform">']
-                + _grid_xml(h5name, "mesh", len(pts), len(lines))
-                + _attributes_xml(h5, h5name, "data", data) + ["</Grid>"])
-    _write_xml(path, body)
+    pts, lines = _polyline(points)
+    body = (['<Grid Name="trajectory" GridType="Uniform">']
+            + _grid_xml(h5name, "mesh", len(pts), len(lines)))
+
+    def write_h5(tmp: Path) -> None:
+        with h5py.File(tmp, "w") as h5:
+            h5.create_dataset("mesh/geometry", data=pts)
+            h5.create_dataset("mesh/topology", data=lines)
+            for name, values in data.items():
+                values = np.asarray(values, dtype=float)
+                h5.create_dataset(f"data/{name}", data=values)
+                body.extend([f'<Attribute Name="{name}" AttributeType='
+                             f'"{_attribute_type(values.shape)}" Center="Node">',
+                             _data_item(h5name, f"/data/{name}", values.shape), "</Attribute>"])
+
+    ensure_space(path.parent, SPACE_MARGIN + 3 * pts.nbytes)
+    _replace_atomically(path.with_suffix(".h5"), write_h5)
+    text = _head_xml(body + ["</Grid>"]) + "</Domain>\n</Xdmf>\n"
+    _replace_atomically(path, lambda tmp: tmp.write_text(text))
+
+
+def read_series(path: "str | os.PathLike") -> Tuple[np.ndarray, np.ndarray, List[Dict]]:
+    """(mesh points, times, [fields per step]) of an XDMF series as written here, read through
+    its XML (HyperSlab items resolved with h5py), as a viewer would."""
+    import xml.etree.ElementTree as ET
+
+    import h5py
+
+    path = Path(path)
+    root = ET.parse(path).getroot()
+    files: Dict[str, "h5py.File"] = {}
+
+    def item(node) -> np.ndarray:
+        if node.get("ItemType") == "HyperSlab":
+            sel, src = list(node)
+            start, stride, count = np.array(sel.text.split(), dtype=int).reshape(3, -1)
+            full = item(src)
+            index = tuple(slice(a, a + s * c, s) for a, s, c in zip(start, stride, count))
+            dims = [int(d) for d in node.get("Dimensions").split()]
+            return full[index].reshape(dims)
+        name, h5path = node.text.strip().split(":")
+        if name not in files:
+            files[name] = h5py.File(path.parent / name, "r")
+        dims = tuple(int(d) for d in node.get("Dimensions").split())
+        data = files[name][h5path]
+        if data.shape[0] < dims[0] or data.shape[1:] != dims[1:]:
+            raise ValueError(f"{path}: {h5path} holds {data.shape}, the XML declares {dims}")
+        return data[:dims[0]]
+
+    try:
+        grids = root.find("Domain").findall("Grid")
+        points = item(grids[0].find("Geometry/DataItem"))
+        times, steps = [], []
+        for step in grids[1].findall("Grid"):
+            times.append(float(step.find("Time").get("Value")))
+            steps.append({a.get("Name"): item(a.find("DataItem"))
+                          for a in step.findall("Attribute")})
+    finally:
+        for f in files.values():
+            f.close()
+    return points, np.array(times), steps

@@ -8,7 +8,7 @@ from pathlib import Path
 import meshio
 import numpy as np
 import pytest
-from meshio.xdmf import TimeSeriesReader
+from fem_dual.output import read_series
 from mpi4py import MPI
 
 from fem_dual.cli import main
@@ -117,20 +117,18 @@ def test_xdmf_output_matches_json(tmp_path_factory, capsys):
     names = sorted(os.listdir(out))
     assert names == ["ziegler.h5", "ziegler.xdmf", "ziegler_trajectory.h5",
                      "ziegler_trajectory.xdmf"]  # no temporary directory left behind
-    with TimeSeriesReader(out / "ziegler.xdmf") as reader:
-        points, cells = reader.read_points_cells()
-        assert reader.num_steps == 3 and len(points) == 11 and cells[0].type == "line"
-        t_all = []
-        for k in range(3):
-            t0, pdata, _ = reader.read_data(k)
-            assert t0 == pytest.approx(k * 1.0)
-            assert set(pdata) == {"t", "xi", "eta", "x_hat", "v_hat", "hamiltonian",
-                                  "error_estimate"}
-            assert np.isfinite(pdata["x_hat"]).all()
-            assert np.allclose(pdata["xi"][-1], 0) and np.allclose(pdata["eta"][-1], 0)
-            t_all.append(pdata["t"] if k == 0 else pdata["t"][1:])
-            if k == 0:
-                assert np.allclose(pdata["x_hat"], np.array(data["x"])[:11])
+    points, times, steps = read_series(out / "ziegler.xdmf")
+    assert len(steps) == 3 and len(points) == 11
+    assert np.allclose(times, [0.0, 1.0, 2.0])
+    t_all = []
+    for k, pdata in enumerate(steps):
+        assert set(pdata) == {"t", "xi", "eta", "x_hat", "v_hat", "hamiltonian",
+                              "error_estimate"}
+        assert np.isfinite(pdata["x_hat"]).all()
+        assert np.allclose(pdata["xi"][-1], 0) and np.allclose(pdata["eta"][-1], 0)
+        t_all.append(pdata["t"] if k == 0 else pdata["t"][1:])
+    x_all = np.concatenate([s["x_hat"][(0 if k == 0 else 1):] for k, s in enumerate(steps)])
+    assert np.array_equal(x_all, np.array(data["x"]))  # float64, bit for bit
     assert np.allclose(np.concatenate(t_all), data["t"])
     traj = meshio.read(out / "ziegler_trajectory.xdmf")
     assert np.allclose(traj.points[:, :2], data["x"])

@@ -1,0 +1,237 @@
+"""What the slab loop does with each accepted slab, in small sinks it calls (rank 0): the
+accumulator of the run's arrays and errors, the streamed XDMF output (with the restart records
+`--resume` reads back), a progress bar.
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Dict, List, Optional
+
+import numpy as np
+
+from fem_dual.config import RunConfig
+from fem_dual.errors import InputError
+from fem_dual.output import XdmfSeries, series_files, write_polyline
+from fem_dual.recovery import VertexValues
+from fem_dual.stepper import SlabEstimate
+
+__all__ = ["AcceptedSlab", "Accumulator", "XdmfSink", "ProgressSink", "run_identity",
+           "Restart"]
+
+
+@dataclass
+class AcceptedSlab:
+    """What the sinks receive for every accepted slab (rank 0). `schedule` is the slab
+    schedule's (position, length) after the slab, `scales` the error weights' scales."""
+
+    index: int
+    t0: float
+    dt: float
+    values: VertexValues
+    estimate: SlabEstimate
+    schedule: tuple = (0, 0)
+    scales: tuple = (0.0, 0.0)
+
+
+class Accumulator:
+    """Vertex arrays of the whole run and their errors against the reference (rank 0 only)."""
+
+    def __init__(self, config: RunConfig):
+        tic = time.perf_counter()
+        self.flow = None
+        if config.reference != "none":
+            self.flow = config.scene.reference(config.x0, config.v0)
+        self.reference_s = 0.0 if self.flow is None else time.perf_counter() - tic
+        self.t: List[np.ndarray] = []
+        self.x: List[np.ndarray] = []
+        self.v: List[np.ndarray] = []
+        self.err_x = 0.0
+        self.err_v = 0.0
+        self.final_err = (float("nan"), float("nan"))
+        self.ham: List[Dict[str, float]] = []
+        self.est_x = self.est_v = 0.0
+        self.est_final = (0.0, 0.0)
+        self.estimates: List[Dict[str, float]] = []
+        self.est_rows: List[np.ndarray] = []  # the estimate at every output time
+        self.err_rows: List[np.ndarray] = []  # the reference error at every output time
+
+    def add(self, slab: AcceptedSlab) -> None:
+        t0, dt, vals = slab.t0, slab.dt, slab.values
+        keep = slice(0 if slab.index == 0 else 1, None)  # each junction once: the end of the slab
+        t = t0 + dt * vals.s[keep]
+        x, v = vals.x[keep], vals.v[keep]
+        if self.flow is not None:
+            tic = time.perf_counter()
+            x_ref, v_ref = self.flow(t)
+            self.reference_s += time.perf_counter() - tic
+            ex, ev = np.abs(x - x_ref).max(axis=1), np.abs(v - v_ref).max(axis=1)
+            self.err_rows.append(np.maximum(ex, ev))
+            self.err_x, self.err_v = max(self.err_x, ex.max()), max(self.err_v, ev.max())
+            self.final_err = (float(ex[-1]), float(ev[-1]))
+        self.t.append(t), self.x.append(x), self.v.append(v)
+        est_x, est_v = slab.estimate.reported(keep)
+        self.est_rows.append(np.maximum(est_x, est_v))
+        self.est_x, self.est_v = max(self.est_x, est_x.max()), max(self.est_v, est_v.max())
+        self.est_final = (float(est_x[-1]), float(est_v[-1]))
+        self.estimates.append(slab.estimate.record())
+        h = vals.hamiltonian
+        scale = max(np.abs(h).max(), np.finfo(float).tiny)
+        self.ham.append({"min": float(h.min()), "max": float(h.max()),
+                         "drift": float((h.max() - h.min()) / scale)})
+
+    def arrays(self, n: int):
+        if not self.t:
+            return np.zeros(0), np.zeros((0, n)), np.zeros((0, n))
+        return np.concatenate(self.t), np.concatenate(self.x), np.concatenate(self.v)
+
+    def hamiltonian(self) -> Dict[str, Any]:
+        if not self.ham:
+            return {"min": None, "max": None, "drift": None, "per_slab": []}
+        return {"min": min(h["min"] for h in self.ham), "max": max(h["max"] for h in self.ham),
+                "drift": max(h["drift"] for h in self.ham), "per_slab": self.ham}
+
+    def estimate_max(self) -> Optional[float]:
+        """The estimated max-norm error of the state over all output times."""
+        return max(self.est_x, self.est_v) if self.t else None
+
+    def estimate(self) -> Dict[str, Optional[float]]:
+        if not self.t:
+            return {"x_max": None, "v_max": None, "final": None}
+        return {"x_max": self.est_x, "v_max": self.est_v, "final": max(self.est_final),
+                "final_x": self.est_final[0], "final_v": self.est_final[1]}
+
+    def error(self) -> Dict[str, Optional[float]]:
+        if not self.t or self.flow is None:
+            return {"x_max": None, "v_max": None, "final": None, "final_x": None, "final_v": None}
+        return {"x_max": float(self.err_x), "v_max": float(self.err_v),
+                "final": max(self.final_err), "final_x": self.final_err[0],
+                "final_v": self.final_err[1]}
+
+
+def run_identity(config: RunConfig) -> Dict[str, Any]:
+    """The options that decide a run's slabs and values: a resumed run must repeat them."""
+    from fem_dual import __version__
+
+    return {"scene": config.scene.name, "parameters": config.scene.parameters(), "T": config.T,
+            "cells": config.cells, "degree": config.degree, "slabs": config.slabs,
+            "x0": config.x0.tolist(), "v0": config.v0.tolist(), "rtol": config.rtol,
+            "atol": config.atol, "base": config.base, "coordinates": config.coordinates,
+            "recovery": config.recovery, "assembly": config.assembly,
+            "staging": config.staging, "superpose": config.superpose,
+            "max_halvings": config.max_halvings, "petsc": dict(sorted(config.petsc.items())),
+            "version": __version__}
+
+
+def _fields(vals: VertexValues, slab: AcceptedSlab) -> Dict[str, np.ndarray]:
+    return {"t": slab.t0 + slab.dt * vals.s, "xi": vals.xi, "eta": vals.eta, "x_hat": vals.x,
+            "v_hat": vals.v, "hamiltonian": vals.hamiltonian,
+            "error_estimate": np.maximum(*slab.estimate.reported())}
+
+
+def _restart(slab: AcceptedSlab) -> Dict[str, np.ndarray]:
+    est = slab.estimate
+    return {"slab": np.array([slab.index, slab.t0, slab.dt, *slab.schedule, *slab.scales,
+                              est.local_weighted, est.global_weighted, *est.floor,
+                              est.t0]),
+            "s": slab.values.s, "local": est.local, "glob": est.glob}
+
+
+class XdmfSink:
+    """The dual fields and the recovered motion per slab, streamed into `out/<scene>.xdmf`
+    (rank 0); the trajectory polyline when the run ends, however it ends. A fresh run first
+    removes the files of an earlier run of the scene, so nothing stale looks current."""
+
+    def __init__(self, config: RunConfig, name: str, resume: Optional["Restart"] = None):
+        self.out: Path = config.out
+        self.name = name
+        self.identity = run_identity(config)
+        self.series: Optional[XdmfSeries] = resume.series if resume is not None else None
+        self.seconds = 0.0
+        if resume is None:
+            for stale in series_files(self.out, name):
+                if stale.exists():
+                    stale.unlink()
+
+    def add(self, slab: AcceptedSlab) -> None:
+        tic = time.perf_counter()
+        vals = slab.values
+        fields, restart = _fields(vals, slab), _restart(slab)
+        if self.series is None:
+            self.series = XdmfSeries(self.out / f"{self.name}.xdmf", slab.dt * vals.s,
+                                     {k: a.shape for k, a in fields.items()},
+                                     {k: a.shape for k, a in restart.items()}, self.identity)
+        self.series.write(slab.t0, fields, restart)
+        self.seconds += time.perf_counter() - tic
+
+    def close(self, t: np.ndarray, x: np.ndarray, v: np.ndarray) -> List[str]:
+        """Flush the series and write the trajectory; the files written."""
+        tic = time.perf_counter()
+        if self.series is not None and not self.series.broken:
+            self.series.close()
+            write_polyline(self.out / f"{self.name}_trajectory.xdmf", x, {"t": t, "v_hat": v})
+        self.seconds += time.perf_counter() - tic
+        return self.files_on_disk()
+
+
+    @property
+    def slabs_written(self) -> int:
+        """Slabs the files on disk hold."""
+        return 0 if self.series is None else self.series.count
+
+    def files_on_disk(self) -> List[str]:
+        """Our files that exist (after a failed close)."""
+        return [str(p) for p in series_files(self.out, self.name) if p.exists()]
+
+
+class Restart:
+    """The completed slabs of an earlier run with --out, read back for --resume (rank 0)."""
+
+    def __init__(self, config: RunConfig, name: str):
+        import h5py
+
+        path = config.out / f"{name}.xdmf"
+        if not path.with_suffix(".h5").exists():
+            raise InputError(f"--resume: {path.with_suffix('.h5')} does not exist (no earlier "
+                             f"run of {name} with --out {config.out})")
+        try:
+            with h5py.File(path.with_suffix(".h5"), "r") as h5:
+                stored = json.loads(h5.attrs["fem_dual"])
+                steps = {k: h5["steps"][k][:] for k in h5["steps"]}
+                restart = {k: h5["restart"][k][:] for k in h5["restart"]}
+        except (OSError, KeyError, ValueError) as exc:
+            raise InputError(f"--resume: {path.with_suffix('.h5')} cannot be read ({exc})") \
+                from None
+        mine = run_identity(config)
+        for key in mine:
+            if stored.get(key) != json.loads(json.dumps(mine[key])):
+                raise InputError(f"--resume: the run in {config.out} has {key}="
+                                 f"{stored.get(key)!r}, this one {key}={mine[key]!r}")
+        self.series = XdmfSeries.reopen(path)
+        self.slabs: List[AcceptedSlab] = []
+        n = config.scene.n
+        for k, row in enumerate(restart["slab"]):
+            (index, t0, dt, pos, length, sx, sv, lw, gw, fx, fv, et0) = row
+            vals = VertexValues(restart["s"][k], steps["x_hat"][k].reshape(-1, n),
+                                steps["v_hat"][k].reshape(-1, n), steps["hamiltonian"][k])
+            est = SlabEstimate(et0, dt, restart["local"][k], restart["glob"][k], lw, gw,
+                               (fx, fv))
+            self.slabs.append(AcceptedSlab(int(index), t0, dt, vals, est,
+                                           (int(pos), int(length)), (sx, sv)))
+
+
+class ProgressSink:
+    def __init__(self, T: float):
+        from tqdm import tqdm
+
+        self.bar = tqdm(total=T, unit="t", desc="slabs", leave=False,
+                        bar_format="{l_bar}{bar}| t={n:.4g}/{total:.4g} "
+                                   "[{elapsed}<{remaining}, {rate_fmt}]")
+
+    def add(self, slab: AcceptedSlab) -> None:
+        self.bar.update(slab.dt)
+
+    def close(self) -> None:
+        self.bar.close()
