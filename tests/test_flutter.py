@@ -52,8 +52,9 @@ def test_flutter_cli_json(capsys):
     import json
     assert main(["flutter", "ziegler", "--json"]) == 0
     data = json.loads(capsys.readouterr().out)
-    assert set(data) == {"eigen", "dual", "eigen_s", "dual_s"}
+    assert set(data) == {"eigen", "dual", "eigen_s", "dual_s", "dual_tol"}
     assert data["dual"] == pytest.approx(data["eigen"], rel=1e-2)
+    assert 0 < data["dual_tol"] < 1e-6  # relative to the fastest frequency, 1.83 here
     assert main(["flutter", "curl3d"]) == 2
 
 
@@ -116,3 +117,140 @@ def test_general_damped_linear_system_against_the_matrix_exponential():
               for c in (8, 16, 32)]
     assert errors[-1] < 1e-7
     assert np.all(observed_rates(errors) > 5.5), errors  # order 2p
+
+
+# Issue 16, item 8: `flutter` blamed the input for the noise of its own fit. A window too short
+# for the motion, a huge length scale (the frequencies scale like 1/l) and an under-resolved run
+# exited 2 "already unstable without load" (or, for the last, reported 0.40 for 2.086), though the
+# eigenvalues at P = 0 are purely imaginary.
+@pytest.mark.serial
+@pytest.mark.parametrize("args, status", [
+    (["--param", "l=1e6"], 3),  # slowest period 1.6e7 in a window of 40
+    (["--T", "1e-9", "--slabs", "1"], 3),  # the samples do not span the state space
+    (["--cells", "4", "--degree", "2"], 0),  # halved slabs: the samples are not uniform
+])
+def test_flutter_does_not_blame_the_input_for_its_own_noise(args, status, capsys):
+    import json
+    code = main(["flutter", "ziegler", "--json", *args])
+    out, err = capsys.readouterr()
+    assert "already unstable" not in err
+    assert code == status, err
+    if code == 0:
+        data = json.loads(out)
+        assert data["dual"] == pytest.approx(data["eigen"], rel=1e-2)
+        assert data["eigen"] == pytest.approx(3.5 - np.sqrt(2), rel=1e-4)
+    else:
+        assert "cannot resolve growth" in err and "the eigenvalues are stable" in err
+        assert "use a longer --T" in err
+
+
+@pytest.mark.serial
+@pytest.mark.parametrize("param", ["d1=-0.05", "c1=-0.5"])  # negative damping; divergence
+def test_flutter_still_reports_a_system_unstable_without_load(param, capsys):
+    assert main(["flutter", "ziegler", "--param", param]) == 2
+    assert "already unstable without load (P = 0)" in capsys.readouterr().err
+
+
+def test_critical_load_refuses_a_rate_unstable_at_zero():
+    from fem_dual.errors import InputError
+    from fem_dual.flutter import critical_load
+    with pytest.raises(InputError, match="already unstable without load"):
+        critical_load(lambda P: 0.01 + P, 1e-9)
+    assert critical_load(lambda P: P - 1.5, 1e-9) == pytest.approx(1.5, rel=1e-5)
+
+
+def test_eigen_threshold_is_relative_to_the_frequencies():
+    """At l = 1e9 the frequencies are 1e-9: the former absolute threshold 1e-9 on the real part
+    put the load at 5.0 l/c instead of 7/2 - sqrt 2."""
+    from fem_dual.flutter import critical_load, eigen_rate, eigen_tolerance
+    for l in (1e-3, 1.0, 1e9):
+        scene = get_scene("ziegler").from_params({"l": repr(l)})
+        load = critical_load(eigen_rate(scene), eigen_tolerance(scene))
+        assert load * l == pytest.approx(3.5 - np.sqrt(2), rel=1e-5), l
+
+
+def _exact_motion(times, P=1.0, shift=0.0):
+    """The exact motion of the Ziegler column under load P (its first-order matrix shifted by
+    `shift`: growth at that rate) at the given times."""
+    from scipy.linalg import expm
+    A = get_scene("ziegler").from_params({"P": repr(P)}).first_order_matrix() + shift * np.eye(4)
+    z = np.array([expm(A * t) @ [0.1, -0.05, 0.02, 0.03] for t in times])
+    return z[:, :2], z[:, 2:]
+
+
+def _dyadic_times(lengths, cells=4):
+    """Vertex times of slabs of the given lengths, `cells` cells each (as halved slabs give)."""
+    ends = np.concatenate([[0.0], np.cumsum(lengths)])
+    return np.unique(np.concatenate([np.linspace(a, b, cells + 1)
+                                     for a, b in zip(ends[:-1], ends[1:])]))
+
+
+@pytest.mark.parametrize("P", [1.0, 2.2])  # stable; flutter
+def test_growth_fit_of_non_uniform_samples(P):
+    """Slabs of different lengths: only pairs a common step apart obey one map (the former fit
+    took t[1] - t[0] for every step)."""
+    from fem_dual.flutter import fit_growth
+    t = _dyadic_times([0.25] * 8 + [0.5] * 12 + [0.25] * 8 + [1.0] * 10)
+    x, v = _exact_motion(t, P)
+    lam = np.linalg.eigvals(get_scene("ziegler").from_params({"P": repr(P)})
+                            .first_order_matrix())
+    fit = fit_growth(t, x, v)
+    assert fit.step == pytest.approx(0.25) and fit.resolved  # the step most pairs share
+    assert fit.rate == pytest.approx(lam.real.max(), abs=1e-8)
+    assert abs(fit.rate - lam.real.max()) <= fit.noise + 1e-12 and fit.noise < 1e-8
+    assert fit.frequency == pytest.approx(np.abs(lam).max(), rel=1e-8)
+
+
+def test_growth_fit_knows_a_window_too_short():
+    from fem_dual.flutter import fit_growth
+    t = np.linspace(0, 1e-9, 17)
+    x, v = _exact_motion(t)
+    assert not fit_growth(t, x, v).resolved
+    t = np.linspace(0, 40, 641)
+    x, v = _exact_motion(t)
+    assert fit_growth(t, x, v).resolved
+    fit = fit_growth(t, x, v, error=1e-3)  # the run's error estimate widens the uncertainty
+    assert fit.noise > 100 * fit_growth(t, x, v).noise
+
+
+def _fake_run(shift=0.0, fail=None):
+    """A stand-in for the dual simulation: the exact motion (grown at `shift`), or a failure."""
+    from types import SimpleNamespace
+
+    from fem_dual.errors import SolveError
+
+    def fake(config, comm=None):
+        if fail is not None:
+            raise SolveError(fail, slab=3)
+        t = np.linspace(0, config.T, 641)
+        x, v = _exact_motion(t, config.scene.P, shift)
+        return SimpleNamespace(t=t, x=x, v=v, error_estimate=1e-11)
+    return fake
+
+
+def test_growth_the_eigenvalues_contradict_is_a_solve_error(monkeypatch):
+    """Growth at P = 0 in the dual simulation but not in the eigenvalues: the run's numerical
+    growth, exit 3, not the input's instability, exit 2."""
+    import fem_dual.flutter as fl
+    from fem_dual.errors import SolveError
+    monkeypatch.setattr(fl, "run", _fake_run(shift=0.01))
+    with pytest.raises(SolveError, match="grows without load where the eigenvalues do not"):
+        flutter(RunConfig.create("ziegler", **SETTINGS), MPI.COMM_WORLD)
+    monkeypatch.setattr(fl, "run", _fake_run())  # the exact motion: the exact load
+    found = flutter(RunConfig.create("ziegler", **SETTINGS), MPI.COMM_WORLD)
+    assert found["dual"] == pytest.approx(3.5 - np.sqrt(2), rel=1e-5)
+
+
+@pytest.mark.serial
+def test_a_failed_dual_simulation_is_a_solve_error(monkeypatch, capsys):
+    import fem_dual.flutter as fl
+    monkeypatch.setattr(fl, "run", _fake_run(fail="slab 3: the slab matrix is singular"))
+    assert main(["flutter", "ziegler"]) == 3
+    err = capsys.readouterr().err
+    assert "the dual simulation at P = 0 failed: slab 3: the slab matrix is singular" in err
+
+
+@pytest.mark.serial
+def test_flutter_needs_a_moving_start_state(capsys):
+    assert main(["flutter", "ziegler", "--x0", "0,0", "--v0", "0,0"]) == 2
+    assert "start state that moves" in capsys.readouterr().err
