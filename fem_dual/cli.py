@@ -371,6 +371,13 @@ def _stress(args, comm: MPI.Comm) -> int:
 
 
 def main(argv: Optional[Sequence[str]] = None, comm: MPI.Comm = MPI.COMM_WORLD) -> int:
+    """The command line; returns the exit status. SIGINT/SIGTERM stop a run after the slab at
+    hand (fem_dual.faults) for as long as main runs, JSON printing included."""
+    with faults.graceful_signals():
+        return _main(argv, comm)
+
+
+def _main(argv: Optional[Sequence[str]], comm: MPI.Comm) -> int:
     if argv is None and hasattr(signal, "SIGPIPE"):  # `fem-dual ... | head`: end quietly, as
         signal.signal(signal.SIGPIPE, signal.SIG_DFL)  # Unix tools do (not PETSc's handler)
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -379,6 +386,8 @@ def main(argv: Optional[Sequence[str]] = None, comm: MPI.Comm = MPI.COMM_WORLD) 
         if args.command == "scenes":
             print0(comm, _list_scenes())
             return 0
+        if args.command == "run":
+            faults.arm()
         if getattr(args, "scene_file", None):
             from fem_dual.scenes import load_scene_file
 
@@ -413,7 +422,7 @@ def main(argv: Optional[Sequence[str]] = None, comm: MPI.Comm = MPI.COMM_WORLD) 
         if args.resume and args.out is None:
             raise InputError("--resume needs --out: the directory of the run to go on with")
         files = _check_files(comm, args)  # after validation: bad input writes nothing
-        with faults.graceful_signals(), _stdout_to_stderr(args.json):
+        with _stdout_to_stderr(args.json):
             result = run(config, comm, progress=not args.json and sys.stderr.isatty(),
                          resume=args.resume)
     except InputError as exc:

@@ -107,6 +107,11 @@ class RunResult:
     def write_json(self, stream, chunk: int = 4096) -> None:
         """Write `to_dict()` as one JSON object, streaming the vertex arrays in chunks of rows so
         that long runs never hold their JSON text in memory."""
+        with faults.signals_deferred():
+            self._write_json(stream, chunk)
+            stream.flush()
+
+    def _write_json(self, stream, chunk: int) -> None:
         head = self.to_dict(arrays=False)
         stream.write(json.dumps(head, allow_nan=False)[:-1])
         for name in ("t", "x", "v"):
@@ -456,6 +461,23 @@ def _on_root(comm: MPI.Comm, action) -> Optional[str]:
     return problem
 
 
+def _root_input(comm: MPI.Comm, build):
+    """build() on rank 0 (None elsewhere); its InputError or OSError an InputError on every
+    rank."""
+    value, problem = None, None
+    if comm.rank == 0:
+        try:
+            value = build()
+        except InputError as exc:
+            problem = str(exc)
+        except OSError as exc:
+            problem = f"--out: {exc.filename or ''} {exc.strerror or exc}".replace("  ", " ")
+    problem = bcast(comm, problem)
+    if problem:
+        raise InputError(problem)
+    return value
+
+
 class _LoopState:
     """Where the slab loop stands: slab index, start state and its estimated error, lengths."""
 
@@ -492,18 +514,11 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool,
     root = comm.rank == 0
     n = scene.n
     acc = Accumulator(config) if root else None
-    restart = None
-    if resume:  # bad or mismatched files are bad input, on every rank
-        problem = None
-        if root:
-            try:
-                restart = Restart(config, scene.name)
-            except InputError as exc:
-                problem = str(exc)
-        problem = bcast(comm, problem)
-        if problem:
-            raise InputError(problem)
-    xdmf = XdmfSink(config, scene.name, restart) if (root and config.out is not None) else None
+    # bad or mismatched files to resume, an output directory that cannot take our files: bad
+    # input, on every rank
+    restart = _root_input(comm, lambda: Restart(config, scene.name)) if resume else None
+    xdmf = None if config.out is None else _root_input(
+        comm, lambda: XdmfSink(config, scene.name, restart))
     bar = ProgressSink(config.T) if (progress and root) else None
     sinks = [s for s in (acc, xdmf, bar) if s is not None]
     timings = {"compile_s": sim.setup_s if sim._fresh else 0.0, "solve_s": 0.0,

@@ -11,9 +11,11 @@ from typing import Iterator, Optional
 
 from fem_dual.errors import SolveError
 
-__all__ = ["Interrupted", "graceful_signals", "requested", "request", "clear"]
+__all__ = ["Interrupted", "graceful_signals", "requested", "request", "clear", "arm",
+           "signals_deferred"]
 
 _requested: Optional[int] = None
+_armed = False  # the handlers of graceful_signals stop runs only once armed (a `run` command)
 
 
 def request(signum: int) -> None:
@@ -32,6 +34,13 @@ def clear() -> None:
     _requested = None
 
 
+def arm() -> None:
+    """From now on (within graceful_signals) SIGINT/SIGTERM stop the run after a slab; before,
+    they act as Python's defaults do (KeyboardInterrupt, termination)."""
+    global _armed
+    _armed = True
+
+
 class Interrupted(SolveError):
     """The run was stopped by a signal; `partial` holds the slabs completed before. Exit status
     128 + the signal number (130 for SIGINT, 143 for SIGTERM), as shells report it."""
@@ -44,12 +53,17 @@ class Interrupted(SolveError):
 
 @contextmanager
 def graceful_signals() -> Iterator[None]:
-    """SIGINT and SIGTERM ask the slab loop to stop (fem_dual.faults.requested); a second one
-    ends the process at once, as if unhandled. The previous handlers come back afterwards."""
+    """Once `arm()`ed, SIGINT and SIGTERM ask the slab loop to stop (fem_dual.faults.requested);
+    a second one ends the process at once, as if unhandled. The previous handlers come back
+    afterwards."""
     signals = [signal.SIGINT, signal.SIGTERM]
 
+    global _armed
+
     def handler(signum, frame) -> None:
-        if requested():
+        if not _armed and signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        if requested() or not _armed:
             signal.signal(signum, signal.SIG_DFL)
             os.kill(os.getpid(), signum)
             return
@@ -65,3 +79,17 @@ def graceful_signals() -> Iterator[None]:
         for s, old in previous.items():
             signal.signal(s, old)
         clear()
+        _armed = False
+
+
+@contextmanager
+def signals_deferred() -> Iterator[None]:
+    """SIGINT and SIGTERM wait until the block is done. For writes to a pipe: a signal that
+    interrupts a blocked write of a long text makes Python drop the part not yet written
+    (measured: a JSON object cut at 64 KiB), so results are written with them held back."""
+    held = {signal.SIGINT, signal.SIGTERM}
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)

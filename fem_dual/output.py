@@ -11,7 +11,8 @@ HDF5 through h5py) is written here, on rank 0, from values gathered there:
   field (an XDMF HyperSlab, which ParaView reads; `read_series` here reads it too).
 
 Rows are buffered and flushed at most every FLUSH_SECONDS (and at the end): the HDF5 file is
-opened, extended and closed, then the new steps are written over the XML's closing tags in one
+opened (without HDF5's file lock: a viewer reading the file must not stop the run), extended
+and closed, then the new steps are written over the XML's closing tags in one
 write. So the cost per slab is constant, and at every moment the directory holds a closed HDF5
 file and an XML that names only rows already in it: what a `kill -9` leaves behind is readable
 and holds every slab flushed so far.
@@ -187,7 +188,7 @@ class XdmfSeries:
                 stale.unlink()
 
         def write_h5(tmp: Path) -> None:
-            with h5py.File(tmp, "w") as h5:
+            with h5py.File(tmp, "w", locking=False) as h5:
                 h5.create_dataset("mesh/geometry", data=pts)
                 h5.create_dataset("mesh/topology", data=lines)
                 h5.create_dataset("steps/time", shape=(0,), maxshape=(None,), chunks=(1024,),
@@ -227,7 +228,7 @@ class XdmfSeries:
         self.broken = ""
         self.path, self.h5path = path, path.with_suffix(".h5")
         self.h5name = self.h5path.name
-        with h5py.File(self.h5path, "r") as h5:
+        with h5py.File(self.h5path, "r", locking=False) as h5:
             self.fields = {k: h5["steps"][k].shape[1:] for k in h5["steps"] if k != "time"}
             self.restart = {k: h5["restart"][k].shape[1:] for k in h5["restart"]}
             steps = len(h5["steps/time"])
@@ -297,7 +298,7 @@ class XdmfSeries:
                           f"first {self.count} slabs")
 
     def _append_h5(self, h5py, first: int, rows: int) -> None:
-        with h5py.File(self.h5path, "a") as h5:
+        with h5py.File(self.h5path, "a", locking=False) as h5:
             for group, key, names in (("steps", 1, self.fields), ("restart", 2, self.restart)):
                 for name in names:
                     dset = h5[f"{group}/{name}"]
@@ -344,7 +345,7 @@ def write_polyline(path: Path, points: np.ndarray, data: Dict[str, np.ndarray]) 
             + _grid_xml(h5name, "mesh", len(pts), len(lines)))
 
     def write_h5(tmp: Path) -> None:
-        with h5py.File(tmp, "w") as h5:
+        with h5py.File(tmp, "w", locking=False) as h5:
             h5.create_dataset("mesh/geometry", data=pts)
             h5.create_dataset("mesh/topology", data=lines)
             for name, values in data.items():
@@ -371,22 +372,26 @@ def read_series(path: "str | os.PathLike") -> Tuple[np.ndarray, np.ndarray, List
     root = ET.parse(path).getroot()
     files: Dict[str, "h5py.File"] = {}
 
-    def item(node) -> np.ndarray:
+    def item(node, index=None) -> np.ndarray:
+        """The values of a DataItem (of `index` within it: only that part is read)."""
         if node.get("ItemType") == "HyperSlab":
             sel, src = list(node)
             start, stride, count = np.array(sel.text.split(), dtype=int).reshape(3, -1)
-            full = item(src)
-            index = tuple(slice(a, a + s * c, s) for a, s, c in zip(start, stride, count))
+            part = tuple(slice(a, a + s * c, s) for a, s, c in zip(start, stride, count))
             dims = [int(d) for d in node.get("Dimensions").split()]
-            return full[index].reshape(dims)
+            return item(src, part).reshape(dims)
         name, h5path = node.text.strip().split(":")
         if name not in files:
-            files[name] = h5py.File(path.parent / name, "r")
+            files[name] = h5py.File(path.parent / name, "r", locking=False)
         dims = tuple(int(d) for d in node.get("Dimensions").split())
         data = files[name][h5path]
         if data.shape[0] < dims[0] or data.shape[1:] != dims[1:]:
             raise ValueError(f"{path}: {h5path} holds {data.shape}, the XML declares {dims}")
-        return data[:dims[0]]
+        if index is None:
+            return data[:dims[0]]
+        if any(sl.stop > d for sl, d in zip(index, dims)):
+            raise ValueError(f"{path}: a HyperSlab of {h5path} reaches beyond {dims}")
+        return data[index]
 
     try:
         grids = root.find("Domain").findall("Grid")

@@ -197,7 +197,7 @@ class Restart:
             raise InputError(f"--resume: {path.with_suffix('.h5')} does not exist (no earlier "
                              f"run of {name} with --out {config.out})")
         try:
-            with h5py.File(path.with_suffix(".h5"), "r") as h5:
+            with h5py.File(path.with_suffix(".h5"), "r", locking=False) as h5:
                 stored = json.loads(h5.attrs["fem_dual"])
                 steps = {k: h5["steps"][k][:] for k in h5["steps"]}
                 restart = {k: h5["restart"][k][:] for k in h5["restart"]}
