@@ -28,7 +28,7 @@ from scipy.integrate import solve_ivp
 
 from fem_dual.config import RunConfig
 from fem_dual.driver import Simulation
-from fem_dual.errors import SolveError
+from fem_dual.errors import InputError, SolveError
 from fem_dual.scenes import Scene
 
 __all__ = ["COLUMNS", "bench", "write_csv", "read_csv", "plot", "table", "ratio_at"]
@@ -192,6 +192,9 @@ def bench(base: RunConfig, degrees: Sequence[int] = (2, 3, 4),
     Configurations the tool refuses are left out and listed in `skipped`. `rtols` adds
     fem-dual --rtol rows (ADAPTIVE_CELLS cells per slab, each degree) and the peers at the same
     tolerances."""
+    if not isinstance(base, RunConfig):
+        raise InputError(f"base must be a RunConfig (RunConfig.create(...)), not "
+                         f"{type(base).__name__}")
     rows = _fem_rows(base, degrees, cells, slabs or [base.slabs], repeats, comm, skipped, rtols)
     # the peers answer at fem-dual's output times: those of its run with the fewest of them,
     # so no peer pays for more output (nor is judged at more times) than any fem-dual row

@@ -3,6 +3,9 @@ from __future__ import annotations
 
 import functools
 import math
+import numbers
+import os
+from collections.abc import Mapping as abc_Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, Mapping, Optional, Sequence, Union
@@ -15,10 +18,12 @@ from fem_dual.modal import modal_obstacle
 from fem_dual.problem import BASES
 from fem_dual.recovery import RECOVERIES
 from fem_dual.scenes import Scene, get_scene
-from fem_dual.scenes.base import parse_number, parse_vector
+from fem_dual.scenes.base import (DENSE_BUDGET, DENSE_WORDS, MAX_DOFS, parse_number,
+                                  parse_vector, show)
 from fem_dual.stepper import ROUNDOFF_REL, Tolerance
 
-__all__ = ["RunConfig", "MAX_VERTICES", "MAX_DEGREE", "STAGING_LIMIT"]
+__all__ = ["RunConfig", "MAX_VERTICES", "MAX_DEGREE", "STAGING_LIMIT", "MAX_DOFS",
+           "DENSE_BUDGET", "DENSE_WORDS"]
 
 MAX_VERTICES = 20_000_000  # over the whole run: the vertex arrays of the JSON must fit in memory
 SUPERPOSE = ("auto", "yes", "no")
@@ -34,22 +39,99 @@ COORDINATES = ("auto", "physical", "modal")
 REFERENCES = ("auto", "none")
 MAX_TIMES = 1_000_000  # --t-eval: at most this many times
 MODAL_MAX_DOFS = 2000  # auto: the O(n^3) modes of larger systems cost more than they save
+# Every scene has at most MAX_DOFS = 1448 dofs (fem_dual.scenes.base, the memory rule: its dense
+# n x n matrices, DENSE_WORDS of them at the peak of a run, within DENSE_BUDGET = 2 GiB),
+# checked before anything sized by n is allocated.
 KRONECKER_MIN_DOFS = 5  # auto: linear scenes from this many dofs take the Kronecker path
 
 Number = Union[int, float, str]
 
 
+def _quoted(value) -> str:
+    """The repr of a value, on one short line (a string keeps its quotes, a list its brackets)."""
+    return show(repr(value))
+
+
 def _whole_number(name: str, value: Number, minimum: int = 1) -> int:
+    if not isinstance(value, (str, numbers.Real)) or isinstance(value, (bool, np.bool_)):
+        raise InputError(f"{name}={_quoted(value)} is not a whole number")
     text = str(value).strip()
     try:
         as_float = float(text)
     except ValueError:
-        raise InputError(f"{name}={text!r} is not a whole number") from None
+        raise InputError(f"{name}={_quoted(text)} is not a whole number") from None
     if not math.isfinite(as_float) or as_float != int(as_float):
-        raise InputError(f"{name}={text!r} is not a whole number")
+        raise InputError(f"{name}={_quoted(text)} is not a whole number")
     if int(as_float) < minimum:
-        raise InputError(f"{name}={text!r} must be at least {minimum}")
+        raise InputError(f"{name}={_quoted(text)} must be at least {minimum}")
     return int(as_float)
+
+
+def _choice(name: str, value, choices: Sequence[str]) -> str:
+    """`value` if it is one of `choices` (strings), else InputError naming `name`."""
+    if not isinstance(value, str) or value not in choices:
+        raise InputError(f"{name}={_quoted(value)} is not one of {', '.join(choices)}")
+    return value
+
+
+def _scene(scene, params) -> Scene:
+    """The validated scene of `scene`: a name (with `params`), a Scene class (with `params`) or a
+    Scene object (without), which is validated like one built from its name."""
+    if isinstance(scene, str):
+        return get_scene(scene).from_params(params)
+    if isinstance(scene, type) and issubclass(scene, Scene):
+        return scene.from_params(params)
+    if isinstance(scene, Scene):
+        if params is not None and (not isinstance(params, abc_Mapping) or len(params)):
+            raise InputError("give parameters with the scene name, not with a Scene object")
+        return scene.checked()
+    raise InputError(f"scene must be a scene name or a Scene object, not {_what(scene)}")
+
+
+def _what(value) -> str:
+    """A value named by what it is: None, or its type and short repr."""
+    return "None" if value is None else f"{type(value).__name__} {_quoted(value)}"
+
+
+def _out(out) -> Optional[Path]:
+    if out is None:
+        return None
+    if (not isinstance(out, (str, os.PathLike)) or isinstance(out, bytes)
+            or isinstance(os.fspath(out), bytes)):
+        raise InputError(f"out must be a path, not {_what(out)}")
+    text = os.fspath(out)
+    if not text.strip() or "\0" in text:
+        raise InputError(f"out must be a path, not {_quoted(text)}")
+    return Path(text)
+
+
+def _petsc(petsc) -> Dict[str, str]:
+    """PETSc options as NAME -> text; values strings, or numbers and booleans spelt for PETSc."""
+    if petsc is None:
+        return {}
+    if not isinstance(petsc, abc_Mapping):
+        raise InputError(f"petsc must be a mapping of option names to values, not "
+                         f"{type(petsc).__name__}")
+    options = {}
+    for key, value in petsc.items():
+        if not isinstance(key, str):
+            raise InputError(f"petsc: option name {_quoted(key)} is not a string")
+        key = key.lstrip("-")
+        if not key or any(ch.isspace() for ch in key):
+            raise InputError(f"PETSc option {key!r} is not an option name")
+        if isinstance(value, (bool, np.bool_)):
+            value = "true" if value else "false"
+        elif isinstance(value, (int, np.integer)):
+            value = str(int(value))
+        elif isinstance(value, (float, np.floating)):
+            if not math.isfinite(value):
+                raise InputError(f"petsc: option {key}={value!r} is not finite")
+            value = repr(float(value))
+        elif not isinstance(value, str):
+            raise InputError(f"petsc: option {key} has the value {_what(value)}; give a "
+                             "string ('' for a flag), a number or a boolean")
+        options[key] = value
+    return options
 
 
 def _tolerance(name: str, value: Number) -> float:
@@ -77,7 +159,12 @@ def parse_times(text: "str | Sequence[float]", T: float) -> np.ndarray:
             raise InputError(f"t-eval count={count} is too large (at most {MAX_TIMES})")
         times = np.linspace(start, stop, count)
     else:
-        items = text.split(",") if isinstance(text, str) else list(np.ravel(text))
+        if isinstance(text, (abc_Mapping, set, frozenset, bytes, bool, np.bool_)):
+            raise InputError(f"t-eval={_quoted(text)} is not a list of times")
+        items = (text.split(",") if isinstance(text, str)
+                 else list(np.ravel(np.asarray(text, dtype=object))))
+        if not items:
+            raise InputError("t-eval has no times")
         if len(items) > MAX_TIMES:
             raise InputError(f"t-eval has {len(items)} times (at most {MAX_TIMES})")
         times = np.array([parse_number("t-eval", item) for item in items])
@@ -189,10 +276,7 @@ class RunConfig:
         With `rtol` (and optionally `atol`) the slab lengths are chosen by the error estimate
         so that the estimated error stays within atol + rtol * scale (see fem_dual.stepper);
         `slabs` is then only the first guess's upper bound and must be left at 1."""
-        if isinstance(scene, str):
-            scene = get_scene(scene).from_params(params)
-        elif params:
-            raise InputError("give parameters with the scene name, not with a Scene object")
+        scene = _scene(scene, params)
         T_value = scene.default_T if T is None else parse_number("T", T)
         if not T_value > 0:
             raise InputError(f"T={T!r} must be positive")
@@ -207,36 +291,25 @@ class RunConfig:
         n = scene.n
         x0_ = parse_vector("x0", scene.default_x0 if x0 is None else x0, n)
         v0_ = parse_vector("v0", scene.default_v0 if v0 is None else v0, n)
-        petsc_ = {}
-        for key, value in (petsc or {}).items():
-            key = str(key).lstrip("-")
-            if not key or any(ch.isspace() for ch in key):
-                raise InputError(f"PETSc option {key!r} is not an option name")
-            petsc_[key] = str(value)
+        out_ = _out(out)
+        petsc_ = _petsc(petsc)
         halvings = _whole_number("max-halvings", max_halvings, minimum=0)
         if halvings > 30:
             raise InputError(f"max-halvings={max_halvings!r} is too large (at most 30)")
-        if superpose not in SUPERPOSE:
-            raise InputError(f"superpose={superpose!r} is not one of {', '.join(SUPERPOSE)}")
+        _choice("superpose", superpose, SUPERPOSE)
         if superpose == "yes" and not scene.linear:
             raise InputError(f"superpose=yes needs a linear scene ({scene.name} is nonlinear)")
-        if staging not in STAGING:
-            raise InputError(f"staging={staging!r} is not one of {', '.join(STAGING)}")
-        if recovery not in RECOVERIES:
-            raise InputError(f"recovery={recovery!r} is not one of {', '.join(RECOVERIES)}")
-        if assembly not in ASSEMBLY:
-            raise InputError(f"assembly={assembly!r} is not one of {', '.join(ASSEMBLY)}")
+        _choice("staging", staging, STAGING)
+        _choice("recovery", recovery, RECOVERIES)
+        _choice("assembly", assembly, ASSEMBLY)
         if assembly == "kronecker" and not scene.linear:
             raise InputError(f"assembly=kronecker needs a linear scene ({scene.name} is "
                              "nonlinear)")
         if assembly == "kronecker" and recovery != "momentum":
             raise InputError("assembly=kronecker recovers the motion from the momenta only "
                              f"(recovery={recovery!r})")
-        if base not in ("auto",) + BASES:
-            raise InputError(f"base={base!r} is not one of auto, {', '.join(BASES)}")
-        if coordinates not in COORDINATES:
-            raise InputError(f"coordinates={coordinates!r} is not one of "
-                             f"{', '.join(COORDINATES)}")
+        _choice("base", base, ("auto",) + BASES)
+        _choice("coordinates", coordinates, COORDINATES)
         if coordinates == "modal":
             if not scene.linear:
                 raise InputError(f"coordinates=modal needs a linear scene ({scene.name} is "
@@ -244,8 +317,7 @@ class RunConfig:
             obstacle = modal_obstacle(scene)
             if obstacle:
                 raise InputError(f"coordinates=modal: {obstacle}")
-        if reference not in REFERENCES:
-            raise InputError(f"reference={reference!r} is not one of {', '.join(REFERENCES)}")
+        _choice("reference", reference, REFERENCES)
         times = None if t_eval is None else parse_times(t_eval, T_value)
         if not scene.linear:  # the force must be finite where the motion starts
             with np.errstate(all="ignore"):
@@ -260,6 +332,12 @@ class RunConfig:
         if rtol_ is not None and slabs_ != 1:
             raise InputError(f"slabs={slabs!r} and rtol={rtol!r} contradict each other: rtol "
                              "chooses the slab lengths")
-        return cls(scene, T_value, cells_, degree_, slabs_, x0_, v0_,
-                   None if out is None else Path(out), petsc_, halvings, superpose, staging,
-                   recovery, assembly, rtol_, atol_, base, coordinates, reference, times)
+        config = cls(scene, T_value, cells_, degree_, slabs_, x0_, v0_, out_, petsc_, halvings,
+                     superpose, staging, recovery, assembly, rtol_, atol_, base, coordinates,
+                     reference, times)
+        from fem_dual.petsc_check import check_user_options  # PETSc options are input too
+        from fem_dual.solvers import solver_prefix
+
+        path = ("kronecker" if config.kronecker else "forms") if scene.linear else "snes"
+        check_user_options(solver_prefix(scene.name), petsc_, path)
+        return config

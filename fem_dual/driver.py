@@ -737,6 +737,7 @@ def run(config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD, progress: bool = Fal
     if not isinstance(config, RunConfig):
         raise InputError(f"config must be a RunConfig (RunConfig.create(...)), not "
                          f"{type(config).__name__}")
+    config.scene.checked()  # a RunConfig built without create() is validated all the same
     if resume and config.out is None:
         raise InputError("resume needs the output directory of the run to go on with (--out)")
     quiet_jit_logging()

@@ -178,7 +178,7 @@ def critical_load(rate: Callable[[float], float], tol: float, first: float = 0.2
 
 
 def _with_load(scene: LinearScene, P: float) -> LinearScene:
-    return replace(scene, P=P)
+    return replace(scene, P=P).checked()
 
 
 def _eigenvalues(scene: LinearScene, P: float) -> np.ndarray:
@@ -240,6 +240,9 @@ def flutter(base: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD,
     InputError when the eigenvalues are unstable at P = 0; SolveError when a dual simulation
     fails or cannot resolve the growth (its fit's uncertainty, or growth at P = 0 that the
     eigenvalues contradict)."""
+    if not isinstance(base, RunConfig):
+        raise InputError(f"base must be a RunConfig (RunConfig.create(...)), not "
+                         f"{type(base).__name__}")
     if not isinstance(base.scene, LinearScene) or not hasattr(base.scene, "P"):
         raise InputError(f"flutter needs a linear scene with a load P, not {base.scene.name}")
     tic = time.perf_counter()

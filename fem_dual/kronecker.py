@@ -205,10 +205,13 @@ class KroneckerSolver:
 
     def __init__(self, problem: KroneckerProblem, prefix: str,
                  overrides: Optional[Mapping[str, str]] = None):
-        from fem_dual.solvers import petsc_options
+        from fem_dual.solvers import SolverOptions
 
         self.problem = p = problem
         comm = p.comm
+        # checked first: the options this path cannot honour (PETSc preconditioners, which need
+        # matrix entries; Krylov methods that need a transpose) are InputErrors, not crashes
+        self.options = SolverOptions(prefix, KRONECKER_DEFAULTS, overrides, "kronecker", comm)
         local = p.nf * 2 * len(p.mine)
         size = p.nf * 2 * p.n
         self.A = PETSc.Mat().createPython([(local, size), (local, size)], _Operator(p), comm=comm)
@@ -216,18 +219,18 @@ class KroneckerSolver:
         self.ksp = PETSc.KSP().create(comm)
         self.ksp.setOperators(self.A)
         self.ksp.setOptionsPrefix(prefix)
-        user_pc = "pc_type" in (overrides or {}) or PETSc.Options().hasName(prefix + "pc_type")
-        with petsc_options(prefix, KRONECKER_DEFAULTS, overrides):
-            self.ksp.setFromOptions()
         self._pc: Optional[_FastDiagonalisation] = None
-        if not user_pc:  # a matrix-free operator: our preconditioner unless one is asked for
-            pc = self.ksp.getPC()
+        if "pc_type" not in self.options.given:  # pc_type=none is the only one taken
+            pc = self.ksp.getPC()  # ours, before setFromOptions: the options it reads are its own
             pc.setType(PETSc.PC.Type.PYTHON)
             self._pc = _FastDiagonalisation(p)
             pc.setPythonContext(self._pc)
         self.x, self.b = self.A.createVecs()
         # PETSc objects with Python contexts must go before PETSc finalises (at exit too)
         weakref.finalize(self, _destroy, self.ksp, self.A, self.x, self.b)
+        with self.options.setup():
+            # (no setUp here: chebyshev's would apply the preconditioner before setup_dt)
+            self.ksp.setFromOptions()
         self.iterations: List[int] = []
         self._dt: Optional[float] = None
 
@@ -246,7 +249,11 @@ class KroneckerSolver:
         r_eta[0] -= (p.c["M"] @ p.v0)[p.mine]
         self.b.array[:] = -_pack(r_xi, r_eta)
         self.x.set(0.0)
-        self.ksp.solve(self.b, self.x)
+        try:
+            with self.options.solving():
+                self.ksp.solve(self.b, self.x)
+        except PETSc.Error as exc:
+            raise SolveError(f"CG failed (PETSc error {exc.ierr})") from None
         reason = self.ksp.getConvergedReason()
         if reason < 0:
             raise SolveError(f"CG did not converge (KSP reason {reason}, "

@@ -17,7 +17,7 @@ from petsc4py import PETSc
 
 from fem_dual.errors import SolveError
 from fem_dual.problem import SlabProblem
-from fem_dual.solvers import CompiledSlab, direct_solver, petsc_options
+from fem_dual.solvers import CompiledSlab, SolverOptions, direct_solver
 from fem_dual.stepper import stalled
 
 __all__ = ["NEWTON_DEFAULTS", "NewtonSlabSolver"]
@@ -72,16 +72,18 @@ class NewtonSlabSolver(CompiledSlab):
 
     def __init__(self, problem: SlabProblem, prefix: str,
                  overrides: Optional[Mapping[str, str]] = None):
-        super().__init__(problem)
+        defaults = {**NEWTON_DEFAULTS, "pc_factor_mat_solver_type": direct_solver(problem.comm),
+                    **problem.scene.solver_defaults}
+        self.options = SolverOptions(prefix, defaults, overrides, "snes", problem.comm)
+        super().__init__(problem)  # compiles: after the options are checked
         self.x = problem.w.vector.copy()
         self.snes = PETSc.SNES().create(problem.comm)
         self.snes.setFunction(self._residual, self.b)
         self.snes.setJacobian(self._jacobian, self.A)
         self.snes.setOptionsPrefix(prefix)
-        defaults = {**NEWTON_DEFAULTS, "pc_factor_mat_solver_type": direct_solver(problem.comm),
-                    **problem.scene.solver_defaults}
-        with petsc_options(prefix, defaults, overrides):
+        with self.options.setup():
             self.snes.setFromOptions()
+            self.options.probe()  # the Newton steps' KSP has the SNES's prefix
         self.snes.setConvergenceHistory(length=1000, reset=True)
         self.iterations: List[int] = []
         self.residual_norms: List[float] = []
@@ -124,7 +126,8 @@ class NewtonSlabSolver(CompiledSlab):
         self.x.set(0.0)
         self.snes.setConvergenceHistory(length=1000, reset=True)
         try:
-            self.snes.solve(None, self.x)
+            with self.options.solving():
+                self.snes.solve(None, self.x)
         except PETSc.Error as exc:
             raise SolveError(f"Newton failed (PETSc error {exc.ierr})") from None
         reason = self.snes.getConvergedReason()
@@ -174,7 +177,8 @@ class NewtonSlabSolver(CompiledSlab):
     def _displace(self, r: PETSc.Vec) -> None:
         """w = x - J^-1 r, with the implicit DtP map solved there; destroys r."""
         dw = self.x.duplicate()
-        self.snes.getKSP().solve(r, dw)
+        with self.options.solving():
+            self.snes.getKSP().solve(r, dw)
         dw.aypx(-1.0, self.x)
         self._update(dw)
         for vec in (r, dw):

@@ -1,26 +1,30 @@
 """PETSc solvers of one slab. A linear scene gets one KSP (matrix assembled and factored once while
 the slab length stays the same); a nonlinear scene gets PETSc SNES (see fem_dual.newton).
 
-Options are a dict applied under a per-solver prefix (`dual_<scene>_`) and removed again after
-`setFromOptions()`, so solvers never leak settings into each other. Options the user set already
-(PETSC_OPTIONS, or `--petsc-option` on the command line) win over the defaults.
+Options are a dict applied under a per-solver prefix (`dual_<scene>_`) while the solver is set up
+and while it solves, and removed in between, so solvers never leak settings into each other.
+Options the user set already (PETSC_OPTIONS, or `--petsc-option` on the command line) win over
+the defaults. The user's options are input (see fem_dual.petsc_check): their values are checked
+before anything is compiled, and an option the solver's set-up did not query is refused.
 """
 from __future__ import annotations
 
-import os
+import contextlib
 import time
 from contextlib import contextmanager
 from typing import Dict, Iterator, Mapping, Optional
 
 from dolfinx import fem
 from dolfinx.fem import petsc as fem_petsc
+from mpi4py import MPI
 from petsc4py import PETSc
 
 from fem_dual.errors import InputError, SolveError
+from fem_dual.petsc_check import check_user_options, last_line, require_used, user_options
 from fem_dual.problem import SlabProblem
 
-__all__ = ["LINEAR_DEFAULTS", "direct_solver", "solver_prefix", "petsc_options", "CompiledSlab",
-           "LinearSlabSolver", "check_true_residual", "TRUE_RESIDUAL_TOL"]
+__all__ = ["LINEAR_DEFAULTS", "direct_solver", "solver_prefix", "petsc_options", "SolverOptions",
+           "CompiledSlab", "LinearSlabSolver", "check_true_residual", "TRUE_RESIDUAL_TOL"]
 
 LINEAR_DEFAULTS: Dict[str, str] = {
     "ksp_type": "preonly",
@@ -40,6 +44,27 @@ def solver_prefix(scene_name: str) -> str:
 
 
 @contextmanager
+def _pushed(prefix: str, defaults: Mapping[str, str],
+            overrides: Optional[Mapping[str, str]] = None) -> Iterator[None]:
+    """Push `defaults` (unless already set) and `overrides` under `prefix`, then remove them.
+    Whether an option is set is read from the whole database (getAll), which, unlike hasName,
+    does not mark the user's options used."""
+    opts = PETSc.Options()
+    present = {name.lower() for name in opts.getAll()}
+    pushed = []
+    for key, value in {**defaults, **(overrides or {})}.items():
+        full = prefix + key
+        if key in (overrides or {}) or full.lower() not in present:
+            opts[full] = value
+            pushed.append(full)
+    try:
+        yield
+    finally:
+        for full in pushed:
+            opts.delValue(full)
+
+
+@contextmanager
 def petsc_options(prefix: str, defaults: Mapping[str, str],
                   overrides: Optional[Mapping[str, str]] = None) -> Iterator[None]:
     """Push `defaults` (unless already set) and `overrides` under `prefix`, then remove them.
@@ -48,23 +73,101 @@ def petsc_options(prefix: str, defaults: Mapping[str, str],
         InputError: PETSc rejected the options while they were set (an unknown solver or
             preconditioner type, a value of the wrong kind), naming the options given.
     """
-    opts = PETSc.Options()
-    pushed = []
-    for key, value in {**defaults, **(overrides or {})}.items():
-        full = prefix + key
-        if key in (overrides or {}) or not opts.hasName(full):
-            opts[full] = value
-            pushed.append(full)
+    with _pushed(prefix, defaults, overrides):
+        try:
+            yield
+        except PETSc.Error as exc:
+            given = ", ".join(f"{k}={v}" for k, v in (overrides or {}).items()) or "none given"
+            raise InputError(f"PETSc rejected the solver options under {prefix} (options: "
+                             f"{given}): {last_line(exc)} (PETSc error {exc.ierr})") from None
+
+
+class SolverOptions:
+    """The options of one solver: `defaults` under `prefix`, the user's (`overrides`, and
+    PETSC_OPTIONS under the prefix) on top. Checked at construction (InputError, collective);
+    set while the solver is set up (`setup`, which refuses options left unused) and while it
+    solves (`solving`: options PETSc reads only then, such as ksp_converged_reason or MUMPS's
+    mat_mumps_* at the first factorisation, take effect).
+
+    Args:
+        path: "forms", "snes" or "kronecker" (fem_dual.petsc_check).
+    """
+
+    def __init__(self, prefix: str, defaults: Mapping[str, str],
+                 overrides: Optional[Mapping[str, str]], path: str,
+                 comm: MPI.Comm = MPI.COMM_WORLD):
+        self.prefix, self.defaults, self.path, self.comm = prefix, dict(defaults), path, comm
+        self.overrides = dict(overrides or {})
+        self.given = user_options(prefix, self.overrides)
+        _collective(comm, lambda: check_user_options(prefix, self.overrides, path))
+
+    def value(self, key: str) -> Optional[str]:
+        """The value in force for `key` (the user's, else the default)."""
+        if key in self.given:
+            return self.given[key][0]
+        return self.defaults.get(key)
+
+    @contextmanager
+    def setup(self) -> Iterator[None]:
+        """The options set for the solver's set-up (setFromOptions and what follows). A PETSc
+        error in it is an InputError naming the options given; afterwards every user option the
+        set-up did not query is one. Collective."""
+        with _pushed(self.prefix, self.defaults, self.overrides):
+            failure = None
+            try:
+                yield
+            except PETSc.Error as exc:
+                given = ", ".join(f"{k}={v}" for k, (v, _) in self.given.items())
+                failure = (f"PETSc cannot set up the {self.path} solver with the options "
+                           f"{given or '(defaults only)'}: "
+                           f"{last_line(exc)} (PETSc error {exc.ierr})")
+            failures = [f for f in self.comm.allgather(failure) if f]
+            if failures:
+                raise InputError(failures[0])
+            _collective(self.comm, lambda: require_used(
+                self.given, self.prefix, self.path, self.comm,
+                values={k: self.value(k) or "" for k in ("ksp_type", "pc_type")}))
+
+    def solving(self):
+        """The options set while the solver solves (nothing to do without --petsc-option)."""
+        if not self.overrides:
+            return contextlib.nullcontext()
+        return _pushed(self.prefix, self.defaults, self.overrides)
+
+    def probe(self) -> None:
+        """Set up (PCSetUp: factorisation packages, sub-solvers) a KSP under the solver's prefix
+        on a small identity matrix of the slab matrix's type and communicator, so that the
+        options PETSc reads only at set-up are checked (and queried) now, before any work. Only
+        with user options (a default run factors nothing extra). Collective."""
+        if not self.given:
+            return
+        comm = self.comm
+        A = PETSc.Mat().createAIJ(((1, None), (1, None)), nnz=(1, 0), comm=comm)
+        row = A.getOwnershipRange()[0]
+        A.setValue(row, row, 1.0)
+        A.assemble()
+        ksp = PETSc.KSP().create(comm)
+        try:
+            ksp.setOptionsPrefix(self.prefix)
+            ksp.setOperators(A)
+            ksp.setFromOptions()
+            ksp.setUp()
+        finally:
+            ksp.destroy()
+            A.destroy()
+
+
+def _collective(comm: MPI.Comm, check) -> None:
+    """Run `check` on every rank; if it raised InputError on any, raise the first rank's message
+    on all."""
+    error = None
     try:
-        yield
-    except PETSc.Error as exc:
-        given = ", ".join(f"{k}={v}" for k, v in (overrides or {}).items()) or "none given"
-        raise InputError(f"PETSc rejected the solver options under {prefix} (PETSc error "
-                         f"{exc.ierr}; options: {given}; PETSC_OPTIONS="
-                         f"{os.environ.get('PETSC_OPTIONS', '')!r})") from None
-    finally:
-        for full in pushed:
-            opts.delValue(full)
+        check()
+    except InputError as exc:
+        error = str(exc)
+    errors = [e for e in comm.allgather(error) if e]
+    if errors:
+        raise InputError(errors[0])
 
 
 class CompiledSlab:
@@ -90,13 +193,15 @@ class LinearSlabSolver(CompiledSlab):
 
     def __init__(self, problem: SlabProblem, prefix: str,
                  overrides: Optional[Mapping[str, str]] = None):
-        super().__init__(problem)
+        defaults = {**LINEAR_DEFAULTS, "pc_factor_mat_solver_type": direct_solver(problem.comm)}
+        self.options = SolverOptions(prefix, defaults, overrides, "forms", problem.comm)
+        super().__init__(problem)  # compiles: after the options are checked
         self.ksp = PETSc.KSP().create(problem.comm)
         self.ksp.setOperators(self.A)
         self.ksp.setOptionsPrefix(prefix)
-        defaults = {**LINEAR_DEFAULTS, "pc_factor_mat_solver_type": direct_solver(problem.comm)}
-        with petsc_options(prefix, defaults, overrides):
+        with self.options.setup():
             self.ksp.setFromOptions()
+            self.options.probe()
         self._assembled_dt: Optional[float] = None
         self.iterations = []
         self.assemblies = 0
@@ -128,7 +233,8 @@ class LinearSlabSolver(CompiledSlab):
         self.b.scale(-1.0)
         fem_petsc.set_bc(self.b, p.bcs)
         try:
-            self.ksp.solve(self.b, p.w.vector)
+            with self.options.solving():
+                self.ksp.solve(self.b, p.w.vector)
         except PETSc.Error as exc:
             raise SolveError(f"linear solve failed (PETSc error {exc.ierr})") from None
         reason = self.ksp.getConvergedReason()

@@ -4,7 +4,7 @@ from __future__ import annotations
 from typing import Dict, List, Type
 
 from fem_dual.errors import InputError
-from fem_dual.scenes.base import Scene
+from fem_dual.scenes.base import Scene, show
 from fem_dual.scenes.curl import (Curl2D, Curl2DLifted, Curl2DUFL, Curl3D, Curl3DUFL,
                                   ForceScene)
 from fem_dual.scenes.column import Column
@@ -36,9 +36,12 @@ def load_scene_file(path: str) -> List[str]:
     import contextlib
     import importlib.util
     import inspect
+    import os
     import sys
     from pathlib import Path
 
+    if not isinstance(path, (str, os.PathLike)) or not str(path).strip() or "\0" in str(path):
+        raise InputError(f"scene-file must be a path, not {show(path)}")
     file = Path(path)
     if not file.is_file():
         raise InputError(f"scene-file={path!r} is not a file")
@@ -66,6 +69,9 @@ def load_scene_file(path: str) -> List[str]:
 
 def get_scene(name: str) -> Type[Scene]:
     """The scene class called `name`, or InputError listing the known ones."""
+    if not isinstance(name, str):
+        raise InputError(f"scene must be a scene name (known: {', '.join(SCENES)}), not "
+                         f"{show(name)}")
     try:
         return SCENES[name]
     except KeyError:

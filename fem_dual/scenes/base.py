@@ -4,12 +4,19 @@ declaration of what it needs (its forms module, linear or nonlinear solve, its r
 Fields are floats unless their metadata says `kind="matrix"`: an n x n matrix given on the
 command line as `NAME=a11,a12,...` (row-major) or `NAME=s` for s times the identity; "per_link":
 one value or one per link; "choice": one of a few names.
+
+Every scene, built from parameters (`from_params`) or handed over as an object (`checked`), is
+validated before anything sized by its number of dofs n is allocated: n within the dense-matrix
+budget (MAX_DOFS), then every number finite and normal (zero, or at least the smallest normal
+float64: a subnormal mass or length has no finite reciprocal), then the scene's own `validate`.
 """
 from __future__ import annotations
 
 import abc
+from collections.abc import Mapping as abc_Mapping
 import dataclasses
 import math
+import numbers
 from types import ModuleType
 from typing import ClassVar, Dict, Mapping, Optional, Tuple
 
@@ -18,7 +25,32 @@ import numpy as np
 from fem_dual.errors import InputError
 
 __all__ = ["Scene", "matrix_field", "per_link_field", "choice_field", "parse_number",
-           "parse_vector", "require_spd", "require_positive", "is_spd"]
+           "parse_vector", "require_spd", "require_positive", "require_normal", "require_square",
+           "is_spd", "show", "dense_bytes", "DENSE_BUDGET", "DENSE_WORDS", "MAX_DOFS", "TINY"]
+
+TINY = float(np.finfo(float).tiny)  # the smallest normal float64: below it, 1/x overflows
+# The memory rule: a linear scene of n dofs holds dense n x n float64 matrices, and the dense
+# parts of its run add more: M, K, D, H's weights A, B and their inverses (7), the 2n x 2n
+# first-order matrix (4) and its complex eigenvectors, cached (8), the QZ of the first-order
+# pencil for the reference (16 with its workspace) and of (K, M) for the modes, the modal
+# basis (5), the reference's matrix exponentials (4 each, several at once). Measured with
+# tracemalloc: 70 n^2 float64 at the peak of a 400-dof linear run, 126 n^2 for a 400-link column
+# whose reference falls back to expm; DENSE_WORDS rounds that up. A scene whose n would need
+# more than DENSE_BUDGET is refused before anything is allocated: MAX_DOFS = 1448.
+DENSE_BUDGET = 2 * 1024 ** 3  # bytes
+DENSE_WORDS = 128  # n x n float64 matrices a linear run holds at its peak (see above)
+
+
+def dense_bytes(n: float) -> float:
+    """Bytes of the dense matrices of a scene of n dofs under the memory rule."""
+    try:
+        n = float(n)
+    except OverflowError:  # a whole number beyond float64
+        return math.inf
+    return DENSE_WORDS * 8.0 * n * n  # inf, not OverflowError, for absurd n
+
+
+MAX_DOFS = math.isqrt(DENSE_BUDGET // (8 * DENSE_WORDS))  # the largest n within DENSE_BUDGET
 
 
 def matrix_field(doc: str):
@@ -28,14 +60,14 @@ def matrix_field(doc: str):
 
 def parse_number(name: str, text: "str | float") -> float:
     """A finite float, or InputError naming `name` and the bad text."""
-    if isinstance(text, bool):
-        raise InputError(f"{name}={text!r} is not a number")
+    if isinstance(text, (bool, np.bool_, complex, np.complexfloating)):
+        raise InputError(f"{name}={_quoted(text)} is not a number")
     try:
         value = float(text)
-    except (TypeError, ValueError):
-        raise InputError(f"{name}={text!r} is not a number") from None
+    except (TypeError, ValueError, OverflowError):
+        raise InputError(f"{name}={_quoted(text)} is not a number") from None
     if not math.isfinite(value):
-        raise InputError(f"{name}={text!r} is not finite")
+        raise InputError(f"{name}={_quoted(text)} is not finite")
     return value
 
 
@@ -43,23 +75,38 @@ def parse_vector(name: str, text: "str | tuple | list", n: int) -> np.ndarray:
     """A finite vector of exactly n entries, from 'a,b,..' or a sequence."""
     if isinstance(text, str):
         items = text.split(",")
+    elif isinstance(text, (abc_Mapping, set, frozenset, bytes)):
+        raise InputError(f"{name}={show(text)} is not a vector: give 'a,b,...' or a sequence of "
+                         "numbers")
     else:
         try:
             items = list(text)
         except TypeError:  # a scalar
             items = [text]
     if len(items) != n:
-        raise InputError(f"{name}={_show(text)} has {len(items)} entries, expected {n}")
+        raise InputError(f"{name}={show(text)} has {len(items)} entries, expected {n}")
     return np.array([parse_number(name, item) for item in items])
 
 
-def _show(text) -> str:
+def _quoted(text) -> str:
+    """The repr of a value, on one short line (a string keeps its quotes, a list its brackets)."""
+    return show(repr(text))
+
+
+def show(text, limit: int = 60) -> str:
+    """A value as it may appear in a one-line message: strings as given, sequences joined by
+    commas, anything else by its repr; newlines flattened, long text cut at `limit` chars."""
     if isinstance(text, str):
-        return text
-    try:
-        return ",".join(str(t) for t in text)
-    except TypeError:
-        return str(text)
+        out = text
+    elif isinstance(text, np.ndarray):
+        out = ",".join(str(t) for t in text.ravel()[:limit])
+    elif isinstance(text, (list, tuple)):
+        out = ",".join(show(t, limit) for t in text[:limit])
+    else:
+        out = repr(text)
+    out = " ".join(out.split()) if ("\n" in out or "\r" in out) else out
+    return out if len(out) <= limit else out[:limit - 3] + "..."
+
 
 
 def _parse_matrix(name: str, text: "str | float | np.ndarray | tuple", n: int) -> np.ndarray:
@@ -75,7 +122,7 @@ def _parse_matrix(name: str, text: "str | float | np.ndarray | tuple", n: int) -
     if len(values) == 1:
         return values[0] * np.eye(n)
     if len(values) != n * n:
-        raise InputError(f"{name}={_show(text)} has {len(values)} entries, expected 1 or {n * n}")
+        raise InputError(f"{name}={show(text)} has {len(values)} entries, expected 1 or {n * n}")
     return np.array(values).reshape(n, n)
 
 
@@ -91,17 +138,22 @@ def choice_field(default: str, choices: Tuple[str, ...], doc: str):
 
 
 def _parse_choice(name: str, text, choices: Tuple[str, ...]) -> str:
-    value = str(text).strip()
+    if not isinstance(text, str):
+        raise InputError(f"{name}={show(text)} is not one of {', '.join(choices)}")
+    value = text.strip()
     if value not in choices:
-        raise InputError(f"{name}={_show(text)} is not one of {', '.join(choices)}")
+        raise InputError(f"{name}={show(text)} is not one of {', '.join(choices)}")
     return value
 
 
 def _parse_per_link(name: str, text, n: int) -> list:
-    items = text.split(",") if isinstance(text, str) else list(np.ravel([text]))
+    if isinstance(text, (abc_Mapping, set, frozenset, bytes)):
+        raise InputError(f"{name}={show(text)} is not a number or a list of numbers")
+    items = (text.split(",") if isinstance(text, str)
+             else list(np.ravel(np.asarray(text, dtype=object))))
     values = [parse_number(name, item) for item in items]
     if len(values) not in (1, n):
-        raise InputError(f"{name}={_show(text)} has {len(values)} entries, expected 1 or {n}")
+        raise InputError(f"{name}={show(text)} has {len(values)} entries, expected 1 or {n}")
     return values * n if len(values) == 1 else values
 
 
@@ -111,11 +163,68 @@ def _whole(name: str, value: float) -> int:
     return int(value)
 
 
+def _count(n: int) -> str:
+    """A whole number for a message: in full below 1e15, else as a power of ten."""
+    if abs(n) < 10 ** 15:
+        return str(n)
+    try:
+        return f"{float(n):.3g}"
+    except OverflowError:
+        return f"{'-' if n < 0 else ''}10^{len(str(abs(n))) - 1}"
+
+
+def _whole_value(value) -> bool:
+    """Whether `value` is a whole number (an integer, or a float without a fraction; no bool)."""
+    if isinstance(value, (bool, np.bool_)):
+        return False
+    if isinstance(value, numbers.Integral):
+        return True
+    return (isinstance(value, numbers.Real) and math.isfinite(value)
+            and float(value) == int(value))
+
+
+def require_normal(name: str, value) -> float:
+    """A real number, finite, and zero or normal (|value| >= TINY): a subnormal value has no
+    finite reciprocal and carries only a few bits. InputError naming `name` otherwise."""
+    if (isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real)):
+        raise InputError(f"{name}={_quoted(value)} is not a number")
+    value = float(value)
+    if not math.isfinite(value):
+        raise InputError(f"{name}={value!r} is not finite")
+    if value != 0.0 and abs(value) < TINY:
+        raise InputError(f"{name}={value!r} is subnormal (nonzero but below {TINY:.4g}, the "
+                         "smallest normal float64): its reciprocal is not finite")
+    return value
+
+
+def _require_entries(name: str, given, values: np.ndarray) -> None:
+    """Every entry of `values` (converted from `given`) a number, finite and zero or normal."""
+    flat = np.ravel(np.asarray(given, dtype=object))
+    if any(isinstance(v, (bool, np.bool_, str, bytes)) for v in flat):
+        raise InputError(f"{name}={show(given)} holds something that is not a number")
+    if not np.isfinite(values).all():
+        raise InputError(f"{name}={show(given)} is not finite")
+    small = values[(values != 0) & (np.abs(values) < TINY)]
+    if small.size:
+        raise InputError(f"{name} has the subnormal entry {small[0]!r} (nonzero but below "
+                         f"{TINY:.4g}, the smallest normal float64)")
+
+
 def require_positive(scene: "Scene", *names: str) -> None:
     for name in names:
-        value = getattr(scene, name)
+        value = require_normal(name, getattr(scene, name))
         if not value > 0:
             raise InputError(f"{name}={value!r} must be positive")
+
+
+def require_square(scene: "Scene", name: str, enters: str) -> None:
+    """InputError unless the square of the length `name` is finite and normal (it scales
+    `enters`, which is inverted)."""
+    value = float(getattr(scene, name))
+    square = value * value
+    if not TINY <= square <= np.finfo(float).max:
+        raise InputError(f"{name}={value!r} is out of range: {name}^2 = {square!r} (it scales "
+                         f"{enters}) must be finite and at least {TINY:.4g}")
 
 
 def is_spd(matrix: np.ndarray) -> bool:
@@ -124,13 +233,23 @@ def is_spd(matrix: np.ndarray) -> bool:
             and np.linalg.eigvalsh(0.5 * (matrix + matrix.T)).min() > 0)
 
 
-def require_spd(name: str, matrix: np.ndarray) -> None:
-    """InputError unless `matrix` is symmetric positive definite."""
+def require_spd(name: str, matrix: np.ndarray, inverted: bool = False,
+                label: Optional[str] = None) -> None:
+    """InputError unless `matrix` is finite and symmetric positive definite; `inverted` (the
+    run divides by it): its smallest eigenvalue must also be normal, so that its inverse is
+    finite. The message shows `label` (default NAME=entries)."""
+    shown = label or f"{name}={show(matrix)}"
+    if not np.isfinite(matrix).all():
+        raise InputError(f"{shown} is not finite")
     scale = max(np.abs(matrix).max(), 1e-300)
     if np.abs(matrix - matrix.T).max() > 1e-12 * scale:
-        raise InputError(f"{name}={_show(list(matrix.ravel()))} is not symmetric")
-    if np.linalg.eigvalsh(matrix).min() <= 0:
-        raise InputError(f"{name}={_show(list(matrix.ravel()))} is not positive definite")
+        raise InputError(f"{shown} is not symmetric")
+    smallest = np.linalg.eigvalsh(matrix).min()
+    if smallest <= 0:
+        raise InputError(f"{shown} is not positive definite")
+    if inverted and smallest < TINY:
+        raise InputError(f"{shown} has the eigenvalue {smallest:.4g}, below the "
+                         f"smallest normal float64 ({TINY:.4g}): its inverse is not finite")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -146,6 +265,9 @@ class Scene(abc.ABC):
     default_v0: ClassVar[Tuple[float, ...]]
     summary: ClassVar[str] = ""
     solver_defaults: ClassVar[Dict[str, str]] = {}  # PETSc options this scene needs by default
+    size_field: ClassVar[Optional[str]] = None  # the parameter that sets n (a column's links)
+    min_dofs: ClassVar[int] = 1
+    max_dofs: ClassVar[int] = MAX_DOFS  # a scene may lower it; MAX_DOFS bounds every scene
 
     # -- construction -------------------------------------------------------------------------
     @classmethod
@@ -156,23 +278,25 @@ class Scene(abc.ABC):
     def from_params(cls, params: Optional[Mapping[str, object]] = None) -> "Scene":
         """Build and validate a scene from NAME -> value (strings from the command line, or numbers).
 
+        The number of dofs is checked (MAX_DOFS) before any parameter sized by it is parsed.
+
         Raises:
             InputError: an unknown name, a value that is not a finite number, or a value the scene
                 rejects in `validate`.
         """
-        params = dict(params or {})
+        params = cls._params_dict(params)
         known = {f.name: f for f in dataclasses.fields(cls)}
         for key in params:
             if key not in known:
-                raise InputError(f"unknown parameter {key!r} for scene {cls.name} "
+                raise InputError(f"unknown parameter {show(repr(key))} for scene {cls.name} "
                                  f"(known: {', '.join(known)})")
         kind = {key: known[key].metadata.get("kind", "float") for key in params}
         values: Dict[str, object] = {key: parse_number(key, text) for key, text in params.items()
                                      if kind[key] == "float"}
-        for size in ("links", "dofs"):  # sizes: everything sized by n depends on them
+        for size in {"links", "dofs", cls.size_field} - {None}:  # sizes: n depends on them
             if size in values:
                 values[size] = _whole(size, values[size])
-        n = cls(**values).n  # scalar fields first: n may depend on them (a column's links)
+        n = cls.check_size(cls(**values).n)  # scalar fields first: n may depend on them
         for key, text in params.items():
             if kind[key] == "matrix":
                 values[key] = tuple(map(tuple, _parse_matrix(key, text, n)))
@@ -180,9 +304,110 @@ class Scene(abc.ABC):
                 values[key] = tuple(_parse_per_link(key, text, n))
             elif kind[key] == "choice":
                 values[key] = _parse_choice(key, text, known[key].metadata["choices"])
-        scene = cls(**values)
-        scene.validate()
-        return scene
+        return cls(**values).checked()
+
+    @staticmethod
+    def _params_dict(params) -> Dict[str, object]:
+        """`params` as a dict of NAME -> value; InputError unless a mapping with string keys."""
+        if params is None:
+            return {}
+        if not isinstance(params, abc_Mapping):
+            raise InputError(f"params must be a mapping of parameter names to values, not "
+                             f"{type(params).__name__}")
+        for key in params:
+            if not isinstance(key, str):
+                raise InputError(f"params: parameter name {show(key)} is not a string")
+        return dict(params)
+
+    @classmethod
+    def check_size(cls, n) -> int:
+        """n as the number of dofs of this scene: a whole number from `min_dofs` to `max_dofs`
+        and within the memory rule (MAX_DOFS); InputError naming the size parameter."""
+        name = cls.size_field or "n"
+        if not _whole_value(n):
+            raise InputError(f"{name}={_quoted(n)} is not a whole number")
+        n = int(n)
+        shown = _count(n)
+        if n < cls.min_dofs:
+            raise InputError(f"{name}={shown} must be at least {cls.min_dofs}")
+        if dense_bytes(n) > DENSE_BUDGET:
+            need = dense_bytes(n) / 2 ** 30
+            need = f"about {need:.4g}" if math.isfinite(need) else "more than 1e300"
+            raise InputError(
+                f"{name}={shown} is too large: {shown} dofs need {need} GiB of dense "
+                f"matrices ({DENSE_WORDS} n x n float64: M, K, D, H's weights, the 2n x 2n "
+                f"first-order matrix, its eigenvectors, the reference's), above the budget of "
+                f"{DENSE_BUDGET / 2 ** 30:g} GiB: at most {MAX_DOFS}")
+        if n > cls.max_dofs:
+            raise InputError(f"{name}={shown} is too large (at most {cls.max_dofs} for scene "
+                             f"{cls.name})")
+        return n
+
+    def checked(self) -> "Scene":
+        """This scene, validated, for a scene built by `from_params` and one handed over as an
+        object alike: the plain numbers (finite, normal), the number of dofs (before anything
+        sized by it), the parameters sized by it, then `validate`. InputError names the first
+        bad value. Once per object (a scene is frozen)."""
+        if not self.__dict__.get("_checked", False):
+            self.check_values()
+            n = self.check_size(self.n)
+            self.check_sized_values(n)
+            self.validate()
+            self.__dict__["_checked"] = True  # frozen: its fields cannot change afterwards
+        return self
+
+    def _fields(self, *kinds: str):
+        """(name, value) of the fields of these kinds: "matrix", "per_link", "choice", or by
+        type "float", "int", "str" (fields of other types are the scene's own to check)."""
+        for f in dataclasses.fields(self):
+            kind = f.metadata.get("kind")
+            if kind is None:
+                kind = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", "")
+            if kind in kinds:
+                yield f.name, getattr(self, f.name)
+
+    def check_values(self) -> None:
+        """InputError for a plain field of the wrong type or value: float fields finite and
+        normal (require_normal), whole numbers whole, choices among their choices."""
+        for name, value in self._fields("float"):
+            require_normal(name, value)
+        for name, value in self._fields("int"):
+            if name == self.size_field:
+                self.check_size(value)  # before n is computed from it
+            elif not _whole_value(value):
+                raise InputError(f"{name}={_quoted(value)} is not a whole number")
+        for f in dataclasses.fields(self):
+            if f.metadata.get("kind") == "choice":
+                value = getattr(self, f.name)
+                if not isinstance(value, str) or value not in f.metadata["choices"]:
+                    raise InputError(f"{f.name}={_quoted(value)} is not one of "
+                                     f"{', '.join(f.metadata['choices'])}")
+
+    def check_sized_values(self, n: int) -> None:
+        """InputError for a matrix field that is not None or n x n, or a per-link field that is
+        not one number or n of them; every entry finite and normal (require_normal)."""
+        for name, value in self._fields("matrix"):
+            if value is None:
+                continue
+            try:
+                matrix = np.asarray(value, dtype=float)
+            except (TypeError, ValueError, OverflowError):
+                raise InputError(f"{name}={_quoted(value)} is not a matrix of numbers") from None
+            if matrix.shape != (n, n):
+                raise InputError(f"{name} has shape {matrix.shape}, expected ({n}, {n})")
+            _require_entries(name, value, matrix)
+        for name, value in self._fields("per_link"):
+            if np.ndim(value) == 0:
+                require_normal(name, value)
+                continue
+            try:
+                values = np.asarray(value, dtype=float)
+            except (TypeError, ValueError, OverflowError):
+                raise InputError(f"{name}={_quoted(value)} is not a list of numbers") from None
+            if values.shape != (n,):
+                raise InputError(f"{name}={show(value)} has {values.size} entries, expected "
+                                 f"one number or {n}")
+            _require_entries(name, value, values)
 
     @classmethod
     def listing(cls) -> str:

@@ -8,7 +8,7 @@ import numpy as np
 
 import forms.column as column_forms
 from fem_dual.errors import InputError
-from fem_dual.scenes.base import per_link_field, require_positive
+from fem_dual.scenes.base import per_link_field, require_positive, require_square, show
 from fem_dual.scenes.linear import LinearScene
 
 __all__ = ["Column", "scaled_column_params", "scaled_column", "lowest_mode"]
@@ -23,6 +23,8 @@ class Column(LinearScene):
     forms: ClassVar = column_forms
     default_T: ClassVar[float] = 20.0
     summary: ClassVar[str] = "N-link follower-load column (Ziegler for N = 2, Beck for large N)"
+    size_field: ClassVar[str] = "links"  # from 2 to MAX_DOFS (the memory rule of scenes.base)
+    min_dofs: ClassVar[int] = 2
 
     links: int = 2
     m: tuple = per_link_field(1.0, "joint and tip masses")
@@ -48,11 +50,10 @@ class Column(LinearScene):
         return np.full(self.n, float(value)) if np.ndim(value) == 0 else np.asarray(value, float)
 
     def validate(self) -> None:
-        if self.links < 2 or self.links > 100_000:
-            raise InputError(f"links={self.links!r} must be between 2 and 100000")
         require_positive(self, "l")
+        require_square(self, "l", "the mass matrix M = l^2 (sums of m)")
         if not (self._per_link("m") > 0).all():
-            raise InputError(f"m={self.m!r} must be positive")
+            raise InputError(f"m={show(self.m)} must be positive")
         super().validate()
 
     def mass_matrix(self) -> np.ndarray:

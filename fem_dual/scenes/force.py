@@ -16,7 +16,7 @@ import numpy as np
 
 from fem_dual.errors import InputError
 from fem_dual.expression import ForceExpression, check_parameter_names, parse_force
-from fem_dual.scenes.base import parse_number, require_positive
+from fem_dual.scenes.base import parse_number, require_normal, require_positive, show
 from fem_dual.scenes.curl import ForceScene
 from forms import implicit
 from forms.predual import isotropic_aux
@@ -40,7 +40,7 @@ class ExpressionForce(ForceScene):
     @classmethod
     def from_params(cls, params: Optional[Mapping[str, object]] = None) -> "ExpressionForce":
         """Build from NAME -> value with the force text under "F" (InputError if missing)."""
-        params = dict(params or {})
+        params = cls._params_dict(params)
         text = params.pop("F", None)
         if text is None or not str(text).strip():
             raise InputError('scene force needs its force: --F "EXPR, EXPR, ..." (one '
@@ -57,9 +57,7 @@ class ExpressionForce(ForceScene):
         if unused:
             raise InputError(f"parameter {unused[0]!r} does not appear in the force "
                              f"{str(text)[:60]!r}")
-        scene = cls(F=str(text), values=tuple(sorted(values.items())), **own)
-        scene.validate()
-        return scene
+        return cls(F=str(text), values=tuple(sorted(values.items())), **own).checked()
 
     @classmethod
     def listing(cls) -> str:
@@ -86,6 +84,23 @@ class ExpressionForce(ForceScene):
     @property
     def default_v0(self) -> Tuple[float, ...]:  # type: ignore[override]
         return (0.0,) * self.n
+
+    def check_values(self) -> None:
+        """The force text a string, its parameters (name, number) pairs: a scene object built
+        in Python is checked like one from the command line (before n is read from F)."""
+        super().check_values()
+        if not isinstance(self.F, str) or not self.F.strip():
+            raise InputError(f"F={show(repr(self.F))} is not a force: give the text \"EXPR, EXPR, "
+                             "...\" (one expression per component)")
+        try:
+            pairs = [(name, value) for name, value in self.values]
+        except (TypeError, ValueError):
+            raise InputError(f"values={show(self.values)} is not a sequence of (name, number) "
+                             "pairs") from None
+        for name, value in pairs:
+            if not isinstance(name, str):
+                raise InputError(f"values: parameter name {show(name)} is not a string")
+            require_normal(name, value)
 
     def validate(self) -> None:
         require_positive(self, "m", "alpha", "beta")

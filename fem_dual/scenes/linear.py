@@ -23,11 +23,19 @@ import numpy as np
 import forms.linear as linear_forms
 from fem_dual.reference import first_order_matrix, linear_flow
 from fem_dual.errors import InputError
-from fem_dual.scenes.base import Scene, choice_field, is_spd, matrix_field, require_spd
+from fem_dual.scenes.base import (Scene, choice_field, is_spd, matrix_field, require_spd,
+                                  show)
 
 __all__ = ["LinearScene", "GeneralLinear", "STIFF_SPREAD"]
 
 STIFF_SPREAD = 5.0  # omega_max / omega_min beyond which auto weights are "energy"
+
+
+def _same(a, b) -> bool:
+    try:
+        return bool(np.array_equal(np.asarray(a, dtype=object), np.asarray(b, dtype=object)))
+    except (TypeError, ValueError):
+        return a is b
 
 
 @dataclasses.dataclass(frozen=True)
@@ -79,13 +87,43 @@ class LinearScene(Scene):
         M = self.mass_matrix()
         return self.matrix("B", M if self.weighting() == "energy" else M @ M)
 
+    def _finite_matrix(self, name: str, build) -> np.ndarray:
+        """build() (a matrix of the scene), or InputError when it overflows float64: then the
+        parameters given (those that differ from the defaults) are named."""
+        try:
+            with np.errstate(all="ignore"):
+                matrix = np.asarray(build(), dtype=float)
+            if np.isfinite(matrix).all():
+                return matrix
+        except (OverflowError, FloatingPointError, ZeroDivisionError):
+            pass
+        raise InputError(f"{name} of scene {self.name} is not finite in float64 with "
+                         f"{self._given()}")
+
+    def _given(self) -> str:
+        try:
+            defaults = type(self)()
+        except Exception:  # a scene without defaults for every field: name them all
+            defaults = None
+        given = [f"{f.name}={show(getattr(self, f.name), 24)}" for f in dataclasses.fields(self)
+                 if defaults is None or not _same(getattr(self, f.name), getattr(defaults, f.name))]
+        return ", ".join(given) if given else "its defaults"
+
     def validate(self) -> None:
-        require_spd("M", self.mass_matrix())
+        M = self._finite_matrix("M", self.mass_matrix)
+        require_spd("M", M, inverted=True)
+        self._finite_matrix("K", self.stiffness_matrix)
+        self._finite_matrix("D", self.damping_matrix)
+        self._finite_matrix("the first-order matrix (M^-1 K, M^-1 D)", self.first_order_matrix)
         if self.weights == "energy" and self.A is None and not is_spd(self.energy_stiffness()):
             raise InputError("weights=energy needs a positive definite energy stiffness (sym K, "
                              "the springs of a column); use weights=identity or give A")
-        require_spd("A", self.A_matrix())
-        require_spd("B", self.B_matrix())
+        require_spd("A", self._finite_matrix("A", self.A_matrix), inverted=True)
+        B = self._finite_matrix("B", self.B_matrix)
+        default = "M" if self.weighting() == "energy" else "M^2"
+        require_spd("B", B, inverted=True, label=None if self.B is not None else (
+            f"B = {default} = {show(B)} (H's velocity weight for weights={self.weighting()}, "
+            f"M={show(M)})"))
 
     def constants(self) -> Dict[str, np.ndarray]:
         A, B = self.A_matrix(), self.B_matrix()
@@ -128,6 +166,9 @@ class GeneralLinear(LinearScene):
     default_T: ClassVar[float] = 10.0
     summary: ClassVar[str] = "any M q'' + D q' + K q = 0 (M SPD; K, D any), remark of section 3.3"
 
+    size_field: ClassVar[str] = "dofs"
+    max_dofs: ClassVar[int] = 1000  # M, K, D are typed as n^2 numbers each
+
     dofs: int = 2
     M: Optional[tuple] = matrix_field("mass matrix (SPD); default identity")
     K: Optional[tuple] = matrix_field("stiffness (any, non-symmetric allowed); default identity")
@@ -144,11 +185,6 @@ class GeneralLinear(LinearScene):
     @property
     def default_v0(self):  # type: ignore[override]
         return (0.0,) * self.n
-
-    def validate(self) -> None:
-        if not 1 <= self.dofs <= 1000:
-            raise InputError(f"dofs={self.dofs!r} must be between 1 and 1000")
-        super().validate()
 
     def mass_matrix(self) -> np.ndarray:
         return self.matrix("M", np.eye(self.n))

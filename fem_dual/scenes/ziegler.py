@@ -7,7 +7,7 @@ from typing import ClassVar, Tuple
 import numpy as np
 
 import forms.ziegler as ziegler_forms
-from fem_dual.scenes.base import require_positive
+from fem_dual.scenes.base import require_positive, require_square
 from fem_dual.scenes.linear import LinearScene
 
 __all__ = ["Ziegler"]
@@ -37,6 +37,7 @@ class Ziegler(LinearScene):
 
     def validate(self) -> None:
         require_positive(self, "m1", "m2", "l")
+        require_square(self, "l", "the mass matrix M = l^2 [[m1 + m2, m2], [m2, m2]]")
         super().validate()
 
     def mass_matrix(self) -> np.ndarray:
