@@ -30,7 +30,7 @@ system-packages:
 
 $(VENV)/.installed: pyproject.toml | system-packages
 	$(PY) -m venv --system-site-packages $(VENV)
-	$(VPY) -m pip install --quiet --no-build-isolation --no-deps --no-index -e .
+	$(VPY) -m pip install --quiet --no-build-isolation --no-index -e .
 	touch $@
 
 install: system-packages $(VENV)/.installed

@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import logging
+from contextlib import contextmanager
+from typing import Iterator
 
 import numpy as np
 import ufl
@@ -15,12 +17,27 @@ def _drop_info(record: logging.LogRecord) -> bool:
     return record.levelno >= logging.WARNING
 
 
-def quiet_jit_logging() -> None:
-    """The JIT of 0.5.2 builds through setuptools, which resets the root logger to INFO and logs
-    every compiler call; a filter on the root logger survives that reset."""
+_JIT_LOGGERS = ("ffcx", "UFL", "dolfinx", "distutils", "setuptools")
+
+
+@contextmanager
+def quiet_jit_logging() -> Iterator[None]:
+    """Compile forms quietly and leave the host's logging as it was. The JIT of 0.5.2 builds
+    through setuptools, which resets the root logger to INFO and logs every compiler call, and
+    FFCx sets its logger's level from its options: within the block a filter on the root logger
+    (it survives that reset) drops what is below WARNING; afterwards the root logger and the JIT's
+    loggers get back their levels, handlers and filters."""
     root = logging.getLogger()
-    if _drop_info not in root.filters:
-        root.addFilter(_drop_info)
+    saved = [(log, log.level, list(log.handlers), list(log.filters))
+             for log in [root] + [logging.getLogger(name) for name in _JIT_LOGGERS]]
+    root.addFilter(_drop_info)
+    try:
+        yield
+    finally:
+        for log, level, handlers, filters in saved:
+            log.setLevel(level)
+            log.handlers[:] = handlers
+            log.filters[:] = filters
 
 
 def vector_space(msh, degree: int, dim: int, family: str = "Lagrange") -> fem.FunctionSpace:

@@ -173,7 +173,13 @@ class Simulation:
                  petsc: Optional[Dict[str, str]] = None, recovery: str = "momentum",
                  kronecker: bool = False, with_dual: bool = True, base: str = "start",
                  modal: "bool | ModalBasis" = False):
-        quiet_jit_logging()
+        with quiet_jit_logging():
+            self._build(scene, degree, cells, comm, petsc, recovery, kronecker, with_dual, base,
+                        modal)
+
+    def _build(self, scene, degree: int, cells: int, comm: MPI.Comm,
+               petsc: Optional[Dict[str, str]], recovery: str, kronecker: bool,
+               with_dual: bool, base: str, modal: "bool | ModalBasis") -> None:
         tic = time.perf_counter()
         self.scene, self.degree, self.cells, self.comm = scene, degree, cells, comm
         self.prefix = solver_prefix(scene.name)
@@ -740,7 +746,6 @@ def run(config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD, progress: bool = Fal
     config.scene.checked()  # a RunConfig built without create() is validated all the same
     if resume and config.out is None:
         raise InputError("resume needs the output directory of the run to go on with (--out)")
-    quiet_jit_logging()
     if config.out is not None:  # before any work: a bad --out is bad input, on every rank
         check_output_dir_on_root(comm, config.out)
     return Simulation.for_config(config, comm).run(config, progress, resume)

@@ -1,0 +1,52 @@
+"""An installable package that leaves its host process alone (issue 16, item 9)."""
+import logging
+import subprocess
+import sys
+import tomllib
+from importlib import metadata
+from pathlib import Path
+
+import pytest
+
+from fem_dual import RunConfig, run
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.serial
+def test_declared_dependencies_are_the_installed_ones():
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    names = [req.split(">")[0].split("<")[0].split("=")[0].strip()
+             for req in project["dependencies"]]
+    assert {"fenics-dolfinx", "petsc4py", "mpi4py", "numpy", "scipy"} <= set(names)
+    for name in names:
+        metadata.version(name)  # raises PackageNotFoundError when pip could not see it
+
+
+@pytest.mark.serial
+def test_a_run_leaves_the_logging_configuration_alone():
+    loggers = [logging.getLogger(name) for name in ("", "ffcx", "UFL", "dolfinx")]
+    before = [(log.level, list(log.handlers), list(log.filters)) for log in loggers]
+    run(RunConfig.create("curl2d", T=0.3, slabs=1, cells=3, degree=8))  # a fresh JIT compile
+    assert [(log.level, list(log.handlers), list(log.filters)) for log in loggers] == before
+
+
+@pytest.mark.serial
+def test_non_editable_install_runs_from_any_directory(tmp_path):
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", "--system-site-packages", str(venv)],
+                   check=True)
+    # the system interpreter behind the test's venv, as a user's fresh venv would have it
+    subprocess.run([str(venv / "bin" / "python"), "-m", "pip", "install", "--quiet",
+                    "--no-build-isolation", "--no-index", str(ROOT)], check=True,
+                   cwd=tmp_path)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    done = subprocess.run([str(venv / "bin" / "fem-dual"), "run", "ziegler", "--T", "1",
+                           "--cells", "4", "--json"], capture_output=True, text=True,
+                          cwd=elsewhere)
+    assert done.returncode == 0, done.stderr
+    where = subprocess.run([str(venv / "bin" / "python"), "-c",
+                            "import fem_dual; print(fem_dual.__file__)"], capture_output=True,
+                           text=True, cwd=elsewhere, check=True).stdout
+    assert str(venv) in where and str(ROOT) not in where
