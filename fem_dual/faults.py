@@ -1,5 +1,6 @@
-"""Ending a run early without losing it: SIGINT/SIGTERM stop the slab loop after the slab at hand
-(the output is flushed and the run's JSON says what was kept), and errors on one rank end every
+"""Ending a run early without losing it: SIGINT/SIGTERM (SIGUSR1 under mpirun, which kills its
+ranks on the other two) stop the slab loop after the slab at hand (the output is flushed and
+the run's JSON says what was kept), and errors on one rank end every
 rank (the slab loop shares them collectively; whatever escapes ends the job).
 """
 from __future__ import annotations
@@ -56,7 +57,9 @@ def graceful_signals() -> Iterator[None]:
     """Once `arm()`ed, SIGINT and SIGTERM ask the slab loop to stop (fem_dual.faults.requested);
     a second one ends the process at once, as if unhandled. The previous handlers come back
     afterwards."""
-    signals = [signal.SIGINT, signal.SIGTERM]
+    # mpirun (Open MPI) kills its ranks on SIGINT/SIGTERM but forwards SIGUSR1: under mpirun,
+    # `kill -USR1 <mpirun>` is the graceful stop
+    signals = [signal.SIGINT, signal.SIGTERM, signal.SIGUSR1]
 
     global _armed
 
@@ -87,7 +90,7 @@ def signals_deferred() -> Iterator[None]:
     """SIGINT and SIGTERM wait until the block is done. For writes to a pipe: a signal that
     interrupts a blocked write of a long text makes Python drop the part not yet written
     (measured: a JSON object cut at 64 KiB), so results are written with them held back."""
-    held = {signal.SIGINT, signal.SIGTERM}
+    held = {signal.SIGINT, signal.SIGTERM, signal.SIGUSR1}
     previous = signal.pthread_sigmask(signal.SIG_BLOCK, held)
     try:
         yield

@@ -93,7 +93,7 @@ def test_kill_9_leaves_a_readable_series(tmp_path, delay):
 
 
 @pytest.mark.serial
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGUSR1])
 def test_signal_stops_after_a_slab_and_keeps_everything(tmp_path, sig):
     out = tmp_path / "out"
     proc = _start(LONG, out)
@@ -109,6 +109,24 @@ def test_signal_stops_after_a_slab_and_keeps_everything(tmp_path, sig):
     assert data["output_slabs"] == slabs  # flushed on the way out
     assert _rows_of(out / "ziegler.xdmf") == (slabs, slabs)
     assert (out / "ziegler_trajectory.xdmf").exists()
+
+
+@pytest.mark.serial
+def test_sigusr1_to_mpirun_stops_every_rank_after_a_slab(tmp_path):
+    """mpirun kills its ranks on SIGINT/SIGTERM (what is on disk then is what kill -9 leaves)
+    but forwards SIGUSR1: the graceful stop under MPI."""
+    out = tmp_path / "out"
+    env = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",
+               OMPI_MCA_rmaps_base_oversubscribe="1")
+    proc = subprocess.Popen(["mpirun", "-n", "2", FEM_DUAL, *LONG, "--out", str(out), "--json"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    _wait_for_steps(out)
+    proc.send_signal(signal.SIGUSR1)
+    stdout, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 128 + signal.SIGUSR1, stderr
+    assert "interrupted by SIGUSR1" in stderr and "Traceback" not in stderr
+    data = json.loads(stdout)
+    assert data["status"] == "interrupted" and data["output_slabs"] == len(data["slab_lengths"])
 
 
 @pytest.mark.serial
