@@ -10,7 +10,7 @@ import ufl
 from dolfinx import fem
 
 __all__ = ["quiet_jit_logging", "CellPointEvaluator", "vector_space", "vector_space_dg1",
-           "constant"]
+           "constant", "destroy_petsc", "release_function_vector"]
 
 
 def _drop_info(record: logging.LogRecord) -> bool:
@@ -49,6 +49,27 @@ def vector_space(msh, degree: int, dim: int, family: str = "Lagrange") -> fem.Fu
 def vector_space_dg1(msh, dim: int) -> fem.FunctionSpace:
     """Discontinuous P1 with `dim` components; its cell dofs sit at reference points 0 and 1."""
     return vector_space(msh, 1, dim, "DG")
+
+
+def destroy_petsc(*objects) -> None:
+    """Destroy PETSc objects now (collective). petsc4py 3.18 does not destroy an object whose
+    Python wrapper is dropped: it stashes it on its communicator's garbage list until a
+    collective PETSc.garbage_cleanup(comm), which nothing calls (and cannot reach the
+    communicators DOLFINx duplicates per mesh), so every dropped KSP, SNES, matrix and vector
+    of a slab solver stayed allocated. None entries are skipped; destroying twice is
+    harmless."""
+    for obj in objects:
+        if obj is not None:
+            obj.destroy()
+
+
+def release_function_vector(function: fem.Function) -> None:
+    """Destroy the PETSc Vec that 0.5.2's `Function.vector` wraps around the dofs (made on first
+    access, kept in `_petsc_x`); a later `.vector` makes a new one."""
+    vec = getattr(function, "_petsc_x", None)
+    if vec is not None:
+        vec.destroy()
+        function._petsc_x = None
 
 
 def constant(msh, value) -> fem.Constant:

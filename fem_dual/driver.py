@@ -202,6 +202,20 @@ class Simulation:
         self.superposition = None
         self.tangent_solves = 0
 
+    def close(self) -> None:
+        """Destroy the PETSc objects of the solver, the sampler, the problem and the companion;
+        the simulation cannot solve after it. Collective: call it on every rank at the same
+        point (MUMPS ends its factorisation collectively). petsc4py 3.18 does not destroy what
+        Python drops (fem_dual.compat.destroy_petsc): a run that did not close its Simulation
+        kept 160 KB (ziegler, 2 dofs) to 290 KB (curl3d) allocated for good."""
+        if self._companion is not None:
+            self._companion.close()
+        self.solver.close()
+        for part in (self.sampler, self.problem):
+            close = getattr(part, "close", None)  # the Kronecker ones hold no PETSc object
+            if close is not None:
+                close()
+
     def uses_superposition(self, config: RunConfig) -> bool:
         if config.superpose != "auto":
             return config.superpose == "yes"
@@ -748,4 +762,13 @@ def run(config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD, progress: bool = Fal
         raise InputError("resume needs the output directory of the run to go on with (--out)")
     if config.out is not None:  # before any work: a bad --out is bad input, on every rank
         check_output_dir_on_root(comm, config.out)
-    return Simulation.for_config(config, comm).run(config, progress, resume)
+    sim = Simulation.for_config(config, comm)
+    try:
+        result = sim.run(config, progress, resume)
+    except (SolveError, InputError):  # raised on every rank alike: close collectively
+        sim.close()
+        raise
+    # any other exception may be one rank's own: a collective close could hang, so its
+    # objects are left to petsc4py's garbage
+    sim.close()
+    return result

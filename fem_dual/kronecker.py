@@ -227,12 +227,16 @@ class KroneckerSolver:
             pc.setPythonContext(self._pc)
         self.x, self.b = self.A.createVecs()
         # PETSc objects with Python contexts must go before PETSc finalises (at exit too)
-        weakref.finalize(self, _destroy, self.ksp, self.A, self.x, self.b)
+        self._finalizer = weakref.finalize(self, _destroy, self.ksp, self.A, self.x, self.b)
         with self.options.setup():
             # (no setUp here: chebyshev's would apply the preconditioner before setup_dt)
             self.ksp.setFromOptions()
         self.iterations: List[int] = []
         self._dt: Optional[float] = None
+
+    def close(self) -> None:
+        """Destroy the PETSc objects now (collective; the finalizer would at collection)."""
+        self._finalizer()
 
     def reset(self) -> None:
         self.iterations = []

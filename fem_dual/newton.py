@@ -15,6 +15,7 @@ import numpy as np
 from dolfinx.fem import petsc as fem_petsc
 from petsc4py import PETSc
 
+from fem_dual.compat import destroy_petsc
 from fem_dual.errors import SolveError
 from fem_dual.problem import SlabProblem
 from fem_dual.solvers import CompiledSlab, SolverOptions, direct_solver
@@ -90,6 +91,10 @@ class NewtonSlabSolver(CompiledSlab):
         self.histories: List[List[float]] = []
         self._error: Optional[str] = None
         self._floor = 0.0
+
+    def close(self) -> None:
+        destroy_petsc(self.snes, self.x)
+        super().close()
 
     def reset(self) -> None:
         """Forget the counts of earlier runs."""

@@ -20,7 +20,7 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from fem_dual.base_state import Predictor
-from fem_dual.compat import constant, vector_space
+from fem_dual.compat import constant, release_function_vector, vector_space
 from fem_dual.pointwise import PointwiseDtP
 from fem_dual.scenes.base import Scene
 from forms.predual import boundary_term, dual_hamiltonian, predual_lagrangian
@@ -163,6 +163,10 @@ class SlabProblem:
                 - self.L_d
         return dual_hamiltonian(xhat, vhat, self.xi, self.eta, self.force, self.aux, self.xbar,
                                 self.vbar, self.c.get("D"))
+
+    def close(self) -> None:
+        """Destroy the PETSc vector of the dual state (solvers made it); collective."""
+        release_function_vector(self.w)
 
     @property
     def num_dofs(self) -> int:

@@ -31,7 +31,8 @@ from scipy import sparse
 from dolfinx import fem
 from petsc4py import PETSc
 
-from fem_dual.compat import CellPointEvaluator, vector_space, vector_space_dg1
+from fem_dual.compat import (CellPointEvaluator, destroy_petsc, vector_space,
+                             vector_space_dg1)
 from fem_dual.errors import SolveError
 from fem_dual.pointwise import PointwiseDtP
 from fem_dual.mpi import gather_rows
@@ -79,6 +80,10 @@ class CellMomenta:
         s = msh.geometry.x[vertices, 0]
         left_first = (s[:, 0] < s[:, 1])[:, None]
         self._sign = np.where(left_first, [1.0, -1.0], [-1.0, 1.0])[:, :, None]
+
+    def close(self) -> None:
+        """Destroy the PETSc vector (collective)."""
+        destroy_petsc(self._vec)
 
     def __call__(self) -> np.ndarray:
         """(cells, 2, 2n): x^ then M v^ at reference points 0 and 1 of each owned cell."""
@@ -135,6 +140,11 @@ class VertexSampler:
         self._cells = np.arange(problem.mesh.msh.topology.index_map(1).size_local, dtype=np.int32)
         self._n = n
         self._mean: Optional[sparse.csr_matrix] = None  # rows -> vertex means, built once
+
+    def close(self) -> None:
+        """Destroy the PETSc objects of the momenta (collective)."""
+        if self.momenta is not None:
+            self.momenta.close()
 
     def __call__(self) -> Optional[VertexValues]:
         """Sample the current dual solution; the result lives on rank 0 (None elsewhere).

@@ -19,6 +19,7 @@ from dolfinx.fem import petsc as fem_petsc
 from mpi4py import MPI
 from petsc4py import PETSc
 
+from fem_dual.compat import destroy_petsc
 from fem_dual.errors import InputError, SolveError
 from fem_dual.petsc_check import check_user_options, last_line, require_used, user_options
 from fem_dual.problem import SlabProblem
@@ -183,6 +184,10 @@ class CompiledSlab:
         self.A = fem_petsc.create_matrix(self.a)
         self.b = fem_petsc.create_vector(self.L)
 
+    def close(self) -> None:
+        """Destroy the PETSc objects (collective); the solver cannot solve any more."""
+        destroy_petsc(self.A, self.b)
+
 
 class LinearSlabSolver(CompiledSlab):
     """One KSP solve per slab of the quadratic dual action: J w = -R(0).
@@ -205,6 +210,10 @@ class LinearSlabSolver(CompiledSlab):
         self._assembled_dt: Optional[float] = None
         self.iterations = []
         self.assemblies = 0
+
+    def close(self) -> None:
+        destroy_petsc(self.ksp)
+        super().close()
 
     def reset(self) -> None:
         """Forget the factorisation and the counts: the next solve assembles and factors."""
@@ -293,4 +302,5 @@ def _largest_eigenvalue(apply, A: PETSc.Mat, bcs, iterations: int) -> float:
         fem_petsc.set_bc(y, bcs)
         value = x.dot(y)
         x, y = y, x
+    destroy_petsc(x, y)
     return value

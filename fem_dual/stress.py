@@ -96,6 +96,7 @@ def attempt(config: RunConfig, comm: MPI.Comm, condition: bool = True) -> Attemp
     cond = None
     if condition and hasattr(sim.solver, "condition_estimate") and failure is None:
         cond = sim.solver.condition_estimate()
+    sim.close()
     return Attempt(config, result, failure, run_s, cond)
 
 
