@@ -90,12 +90,16 @@ def _fem_rows(base: RunConfig, degrees: Sequence[int], cells: Sequence[int],
                 continue
             sim = Simulation.for_config(configs[0], comm)  # compiled once per degree and cells
             compile_s = sim.setup_s
-            for config in configs:
-                what = (f"p={degree} cells={n} " + (f"slabs={config.slabs}" if config.rtol is None
-                                                     else f"rtol={config.rtol:g}"))
-                row = _fem_row(sim, config, repeats, compile_s, skipped, what)
-                if row is not None:
-                    rows.append(row)
+            try:
+                for config in configs:
+                    what = (f"p={degree} cells={n} " + (
+                        f"slabs={config.slabs}" if config.rtol is None
+                        else f"rtol={config.rtol:g}"))
+                    row = _fem_row(sim, config, repeats, compile_s, skipped, what)
+                    if row is not None:
+                        rows.append(row)
+            finally:
+                sim.close()  # petsc4py keeps what is dropped (Simulation.close)
     return rows
 
 

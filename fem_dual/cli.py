@@ -115,7 +115,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "run with the same options wrote into --out")
     r.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     r.add_argument("--petsc-option", action="append", default=[], metavar="KEY=VALUE",
-                   help="PETSc option under the solver prefix dual_<scene>_, e.g. ksp_type=cg")
+                   help="PETSc option under the solver prefix dual_<scene>_, e.g. ksp_type=cg "
+                   "(checked: bad or unused options exit 2)")
     b = sub.add_parser("bench", help="error against run time: fem-dual beside RK45, DOP853, Radau")
     _add_problem_arguments(b, "slabs of the fem-dual runs, a list to sweep (default 1)")
     b.add_argument("--cells", default="2,4,8,16,32", help="cells per slab to sweep")
@@ -133,7 +134,7 @@ def build_parser() -> argparse.ArgumentParser:
     f.set_defaults(slabs="40", T="40", x0=None, v0=None)
     f.add_argument("--cells", default="16", help="cells per slab (default 16)")
     f.add_argument("--degree", default="5", help="degree of the dual fields (default 5)")
-    f.add_argument("--json", action="store_true", help="print {eigen, dual, eigen_s, dual_s}")
+    f.add_argument("--json", action="store_true", help="print {eigen, dual, eigen_s, dual_s, dual_tol}")
     st = sub.add_parser("stress", help="stiff and extreme cases against their references")
     st.add_argument("--case", action="append", default=[], metavar="NAME",
                     help="run only this case (repeatable; --list shows the names)")

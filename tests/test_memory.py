@@ -60,6 +60,7 @@ def test_repeated_runs_do_not_grow_memory(scene):
 def test_close_destroys_the_petsc_objects(capfd):
     """The fast, deterministic half: what a Simulation made is destroyed by close(), and a run
     leaves nothing in PETSc's garbage of PETSC_COMM_WORLD (where a dropped KSP or SNES went)."""
+    PETSc.garbage_cleanup(PETSc.COMM_WORLD)  # what other tests' own Simulations left
     for name, config in [("ziegler", RunConfig.create("ziegler", T=1.0, slabs=2, cells=2)),
                          ("curl3d", RunConfig.create("curl3d", T=0.5, slabs=2, cells=2))]:
         sim = Simulation.for_config(config, MPI.COMM_WORLD)
