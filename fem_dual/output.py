@@ -8,7 +8,8 @@ HDF5 through h5py) is written here, on rank 0, from values gathered there:
 - `<name>.h5` holds the slab mesh once and, per field, one dataset extended along its first axis
   (one row per slab); `/restart` holds what `--resume` needs to go on from the last slab.
 - `<name>.xdmf` holds the mesh grid and a temporal collection whose step k reads row k of each
-  field (an XDMF HyperSlab, which ParaView reads; `read_series` here reads it too).
+  field (the XDMF 3 hyperslab syntax `file:/path|start:stride:count:dims`, which ParaView's
+  default readers read; `read_series` here reads it too).
 
 Rows are buffered and flushed at most every FLUSH_SECONDS (and at the end): the HDF5 file is
 opened (without HDF5's file lock: a viewer reading the file must not stop the run), extended
@@ -121,16 +122,18 @@ def _data_item(h5name: str, path: str, shape: tuple, integer: bool = False) -> s
 
 
 def _row_item(h5name: str, path: str, row: int, shape: tuple) -> str:
-    """Row `row` of the dataset `path` (rows, *shape): an XDMF HyperSlab (start, stride, count
-    per axis). The source's declared rows are row + 1, which it has since it was flushed."""
-    rank = 1 + len(shape)
+    """Row `row` of the dataset `path` (rows, *shape), in the XDMF 3 library's hyperslab syntax
+    `file:/path|start:stride:count:dims` (one entry per axis), which ParaView's default XDMF
+    readers (Xdmf3 Reader S/T) read; they load no array from an XDMF `HyperSlab` item (measured
+    with ParaView 5.11: "Skipping unrecognized array type"). The source's declared rows are
+    row + 1, which it has since it was flushed."""
     start = " ".join(["%d" % row] + ["0"] * len(shape))
-    stride = " ".join(["1"] * rank)
+    stride = " ".join(["1"] * (1 + len(shape)))
     count = " ".join(["1"] + [str(d) for d in shape])
+    full = " ".join([str(row + 1)] + [str(d) for d in shape])
     dims = " ".join(str(d) for d in shape)
-    return (f'<DataItem ItemType="HyperSlab" Dimensions="{dims}" Type="HyperSlab">'
-            f'<DataItem Dimensions="3 {rank}" Format="XML">{start} {stride} {count}</DataItem>'
-            + _data_item(h5name, path, (row + 1,) + tuple(shape)) + "</DataItem>")
+    return (f'<DataItem DataType="Float" Dimensions="{dims}" Format="HDF" Precision="8">'
+            f"{h5name}:{path}|{start}:{stride}:{count}:{full}</DataItem>")
 
 
 def _grid_xml(h5name: str, prefix: str, npoints: int, ncells: int) -> List[str]:
@@ -363,7 +366,7 @@ def write_polyline(path: Path, points: np.ndarray, data: Dict[str, np.ndarray]) 
 
 def read_series(path: "str | os.PathLike") -> Tuple[np.ndarray, np.ndarray, List[Dict]]:
     """(mesh points, times, [fields per step]) of an XDMF series as written here, read through
-    its XML (HyperSlab items resolved with h5py), as a viewer would."""
+    its XML (hyperslabs resolved with h5py), as a viewer would."""
     import xml.etree.ElementTree as ET
 
     import h5py
@@ -372,26 +375,28 @@ def read_series(path: "str | os.PathLike") -> Tuple[np.ndarray, np.ndarray, List
     root = ET.parse(path).getroot()
     files: Dict[str, "h5py.File"] = {}
 
-    def item(node, index=None) -> np.ndarray:
-        """The values of a DataItem (of `index` within it: only that part is read)."""
-        if node.get("ItemType") == "HyperSlab":
-            sel, src = list(node)
-            start, stride, count = np.array(sel.text.split(), dtype=int).reshape(3, -1)
-            part = tuple(slice(a, a + s * c, s) for a, s, c in zip(start, stride, count))
-            dims = [int(d) for d in node.get("Dimensions").split()]
-            return item(src, part).reshape(dims)
-        name, h5path = node.text.strip().split(":")
+    def item(node) -> np.ndarray:
+        """The values of an HDF DataItem, of its hyperslab `|start:stride:count:dims` if it
+        names one (only that part is read)."""
+        name, h5path = node.text.strip().split(":", 1)
+        h5path, _, slab = h5path.partition("|")
         if name not in files:
             files[name] = h5py.File(path.parent / name, "r", locking=False)
         dims = tuple(int(d) for d in node.get("Dimensions").split())
         data = files[name][h5path]
-        if data.shape[0] < dims[0] or data.shape[1:] != dims[1:]:
-            raise ValueError(f"{path}: {h5path} holds {data.shape}, the XML declares {dims}")
-        if index is None:
+        if not slab:
+            if data.shape[0] < dims[0] or data.shape[1:] != dims[1:]:
+                raise ValueError(f"{path}: {h5path} holds {data.shape}, the XML declares {dims}")
             return data[:dims[0]]
-        if any(sl.stop > d for sl, d in zip(index, dims)):
-            raise ValueError(f"{path}: a HyperSlab of {h5path} reaches beyond {dims}")
-        return data[index]
+        start, stride, count, full = (np.array(part.split(), dtype=int)
+                                      for part in slab.split(":"))
+        if data.shape[0] < full[0] or tuple(data.shape[1:]) != tuple(full[1:]):
+            raise ValueError(f"{path}: {h5path} holds {data.shape}, the XML declares "
+                             f"{tuple(full)}")
+        if any(a + s * (c - 1) >= d for a, s, c, d in zip(start, stride, count, full)):
+            raise ValueError(f"{path}: a hyperslab of {h5path} reaches beyond {tuple(full)}")
+        index = tuple(slice(a, a + s * c, s) for a, s, c in zip(start, stride, count))
+        return data[index].reshape(dims)
 
     try:
         grids = root.find("Domain").findall("Grid")

@@ -47,6 +47,10 @@ def test_superposition_equals_solving_every_slab(case, tmp_path_factory):
                     if name == "restart/slab":  # index, t0, dt, schedule: exact
                         assert np.array_equal(s[name][:, :5], d[name][:, :5]), name
                         continue
+                    if name.startswith("restart/"):  # components of the estimate: round-off
+                        a, b = s[name][()], d[name][()]
+                        assert np.abs(a - b).max() <= 0.05 * np.abs(b).max() + 1e-12, name
+                        continue
                     assert np.allclose(s[name][()], d[name][()], rtol=1e-2, atol=1e-12), name
                 else:
                     assert _same(s[name][()], d[name][()], rel=1e-10), name
