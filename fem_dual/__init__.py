@@ -1,5 +1,9 @@
 """fem-dual: particle dynamics under curl forces through a dual variational principle, solved as a
-space-time finite element problem on a 1D time mesh with FEniCSx (DOLFINx 0.5.2)."""
+space-time finite element problem on a 1D time mesh with FEniCSx (DOLFINx 0.5.2).
+
+The names below load on first use (PEP 562), so that `fem-dual --help`, `--version` and
+`scenes` answer without importing DOLFINx and PETSc."""
+import importlib
 import os
 
 # Under mpirun every rank is one process on one core: threaded BLAS would oversubscribe the
@@ -9,10 +13,22 @@ if int(os.environ.get("OMPI_COMM_WORLD_SIZE", os.environ.get("PMI_SIZE", "1"))) 
     for _name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(_name, "1")
 
-from fem_dual.config import RunConfig
-from fem_dual.driver import RunResult, run
-from fem_dual.errors import InputError, SolveError
-from fem_dual.scenes import SCENES, get_scene
+from fem_dual.errors import InputError, SolveError  # noqa: E402 -- after the BLAS default
 
 __all__ = ["RunConfig", "RunResult", "run", "InputError", "SolveError", "SCENES", "get_scene"]
 __version__ = "0.1.0"
+
+_LAZY = {"RunConfig": "fem_dual.config", "RunResult": "fem_dual.driver", "run": "fem_dual.driver",
+         "SCENES": "fem_dual.scenes", "get_scene": "fem_dual.scenes"}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        value = getattr(importlib.import_module(_LAZY[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'fem_dual' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(list(globals()) + list(_LAZY))

@@ -16,14 +16,11 @@ import sys
 from contextlib import contextmanager
 from typing import Iterator, List, Optional, Sequence
 
-from mpi4py import MPI
-
 from fem_dual import faults
-from fem_dual.config import RunConfig
-from fem_dual.driver import RunResult, run
 from fem_dual.errors import InputError, SolveError
-from fem_dual.mpi import print0
-from fem_dual.scenes import SCENES
+
+# What answers without DOLFINx, PETSc or MPI (--help, --version, bad options): only the modules
+# above load at start; a command imports what it needs.
 
 __all__ = ["main", "build_parser"]
 
@@ -46,7 +43,7 @@ def _key_value(text: str, what: str) -> tuple:
 
 def _add_problem_arguments(p: argparse.ArgumentParser, slabs_help: str) -> None:
     """The problem definition shared by `run` and `bench`: scene, horizon, parameters, state."""
-    p.add_argument("scene", metavar="SCENE", help=f"one of: {', '.join(SCENES)}")
+    p.add_argument("scene", metavar="SCENE", help="a scene name (`fem-dual scenes` lists them)")
     p.add_argument("--T", help="final time (default: the scene's)")
     p.add_argument("--slabs", default="1", help=slabs_help)
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
@@ -143,6 +140,19 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--json", action="store_true", help='print {"rows": [...], "passed": ...}')
     sub.add_parser("scenes", help="list the scenes, their parameters and defaults")
     return parser
+
+
+def _rank(comm) -> int:
+    """This process's rank: the communicator's, or (before MPI is loaded) the launcher's."""
+    if comm is not None:
+        return comm.rank
+    return int(os.environ.get("OMPI_COMM_WORLD_RANK", os.environ.get("PMI_RANK", "0")))
+
+
+def _print0(comm, *args, file=None, **kwargs) -> None:
+    """Print on rank 0 only."""
+    if _rank(comm) == 0:
+        print(*args, file=file if file is not None else sys.stdout, **kwargs)
 
 
 def _one_line(text: str) -> str:
@@ -276,6 +286,8 @@ def _summary(result: RunResult) -> str:
 
 
 def _list_scenes() -> str:
+    from fem_dual.scenes import SCENES
+
     return "\n".join(cls.listing() for cls in SCENES.values())
 
 
@@ -287,6 +299,7 @@ def _int_list(name: str, text: str) -> List[int]:
 
 def _bench(args, params, comm: MPI.Comm) -> int:
     from fem_dual import bench as bm
+    from fem_dual.config import RunConfig
     from fem_dual.output import check_output_dir_on_root
 
     slabs = _int_list("slabs", args.slabs)
@@ -308,7 +321,7 @@ def _bench(args, params, comm: MPI.Comm) -> int:
     rows = bm.bench(base, degrees, cells, repeats=repeats, comm=comm, slabs=slabs,
                     skipped=skipped, rtols=rtols)
     for line in skipped:
-        print0(comm, f"fem-dual bench: left out {line}", file=sys.stderr)
+        _print0(comm, f"fem-dual bench: left out {line}", file=sys.stderr)
     if comm.rank == 0:
         bm.write_csv(rows, out / "bench.csv")
         bm.plot(rows, out / "bench.png", f"{args.scene}, T = {base.T:g}")
@@ -329,7 +342,9 @@ def _bench(args, params, comm: MPI.Comm) -> int:
 
 
 def _flutter(args, params, comm: MPI.Comm) -> int:
+    from fem_dual.config import RunConfig
     from fem_dual.flutter import flutter
+    from fem_dual.scenes import SCENES
 
     scene = SCENES.get(args.scene)
     x0 = args.x0 if args.x0 is not None else (None if scene is None or scene.n != 2
@@ -340,10 +355,10 @@ def _flutter(args, params, comm: MPI.Comm) -> int:
                             slabs=args.slabs, x0=x0, v0=v0)
     found = flutter(base, comm)
     if args.json:
-        print0(comm, json.dumps(found, allow_nan=False))
+        _print0(comm, json.dumps(found, allow_nan=False))
     else:
         gap = abs(found["dual"] - found["eigen"]) / found["eigen"]
-        print0(comm, f"critical load of {args.scene}: eigenvalues {found['eigen']:.6f} "
+        _print0(comm, f"critical load of {args.scene}: eigenvalues {found['eigen']:.6f} "
                      f"({found['eigen_s']:.3f} s), dual simulations {found['dual']:.6f} "
                      f"({found['dual_s']:.2f} s); relative gap {gap:.2e}")
     return 0
@@ -356,39 +371,43 @@ def _stress(args, comm: MPI.Comm) -> int:
     from fem_dual import stress as st
 
     if args.list:
-        print0(comm, "\n".join(f"{c.name}{' (slow)' if c.slow else ''}: {c.expected}"
+        _print0(comm, "\n".join(f"{c.name}{' (slow)' if c.slow else ''}: {c.expected}"
                                 for c in st.CASES))
         return 0
     rows = st.stress(args.case, slow=args.slow, comm=comm)
     passed = all(r.status != "FAIL" for r in rows)
     if args.json:
-        print0(comm, json.dumps({"rows": [dataclasses.asdict(r) for r in rows],
+        _print0(comm, json.dumps({"rows": [dataclasses.asdict(r) for r in rows],
                                  "passed": passed}, allow_nan=False))
     else:
-        print0(comm, st.table(rows))
-        print0(comm, f"{sum(r.status != 'FAIL' for r in rows)} of {len(rows)} cases behaved as "
+        _print0(comm, st.table(rows))
+        _print0(comm, f"{sum(r.status != 'FAIL' for r in rows)} of {len(rows)} cases behaved as "
                      "they must" + ("" if passed else "; FAIL marks the others"))
     return 0 if passed else 1
 
 
-def main(argv: Optional[Sequence[str]] = None, comm: MPI.Comm = MPI.COMM_WORLD) -> int:
+def main(argv: Optional[Sequence[str]] = None, comm: "Optional[MPI.Comm]" = None) -> int:
     """The command line; returns the exit status. SIGINT/SIGTERM stop a run after the slab at
     hand (fem_dual.faults) for as long as main runs, JSON printing included."""
     with faults.graceful_signals():
         return _main(argv, comm)
 
 
-def _main(argv: Optional[Sequence[str]], comm: MPI.Comm) -> int:
+def _main(argv: Optional[Sequence[str]], comm: "Optional[MPI.Comm]") -> int:
     if argv is None and hasattr(signal, "SIGPIPE"):  # `fem-dual ... | head`: end quietly, as
         signal.signal(signal.SIGPIPE, signal.SIG_DFL)  # Unix tools do (not PETSc's handler)
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
         args = build_parser().parse_args(_join_negative_values(argv))
         if args.command == "scenes":
-            print0(comm, _list_scenes())
+            _print0(comm, _list_scenes())
             return 0
         if args.command == "run":
             faults.arm()
+        if comm is None:
+            from mpi4py import MPI
+
+            comm = MPI.COMM_WORLD
         if getattr(args, "scene_file", None):
             from fem_dual.scenes import load_scene_file
 
@@ -405,6 +424,9 @@ def _main(argv: Optional[Sequence[str]], comm: MPI.Comm) -> int:
             return _flutter(args, params, comm)
         if args.command == "stress":
             return _stress(args, comm)
+        from fem_dual.config import RunConfig
+        from fem_dual.driver import run
+
         petsc = dict(_key_value(p, "--petsc-option") for p in args.petsc_option)
         if args.F is not None:
             if args.scene != "force":
@@ -427,17 +449,17 @@ def _main(argv: Optional[Sequence[str]], comm: MPI.Comm) -> int:
             result = run(config, comm, progress=not args.json and sys.stderr.isatty(),
                          resume=args.resume)
     except InputError as exc:
-        print0(comm, f"fem-dual: error: {_one_line(exc)}", file=sys.stderr)
+        _print0(comm, f"fem-dual: error: {_one_line(exc)}", file=sys.stderr)
         return InputError.exit_status
     except SolveError as exc:
         interrupted = isinstance(exc, faults.Interrupted)
         what = "stopped" if interrupted else "solve failed"
         kept = _kept(exc.partial) if exc.partial is not None else ""
-        print0(comm, f"fem-dual: {what}: {_one_line(exc)}{kept}", file=sys.stderr)
+        _print0(comm, f"fem-dual: {what}: {_one_line(exc)}{kept}", file=sys.stderr)
         if exc.partial is not None and args.command == "run":
             problem = _write_files(comm, exc.partial, files)
             if problem:
-                print0(comm, f"fem-dual: error: {_one_line(problem)}", file=sys.stderr)
+                _print0(comm, f"fem-dual: error: {_one_line(problem)}", file=sys.stderr)
             if args.json and comm.rank == 0:
                 exc.partial.write_json(sys.stdout)
         return exc.exit_status
@@ -445,13 +467,14 @@ def _main(argv: Optional[Sequence[str]], comm: MPI.Comm) -> int:
         import traceback
 
         traceback.print_exc()
-        print(f"fem-dual: internal error on rank {comm.rank}: {_one_line(exc)}", file=sys.stderr)
-        if comm.size > 1:
+        print(f"fem-dual: internal error on rank {_rank(comm)}: {_one_line(exc)}",
+              file=sys.stderr)
+        if comm is not None and comm.size > 1:
             comm.Abort(1)
         return 1
     problem = _write_files(comm, result, files)
     if problem:  # the run is done; its output is not: a failure, not bad input
-        print0(comm, f"fem-dual: error: {_one_line(problem)}", file=sys.stderr)
+        _print0(comm, f"fem-dual: error: {_one_line(problem)}", file=sys.stderr)
         if args.json and comm.rank == 0:
             result.write_json(sys.stdout)
         return SolveError.exit_status
@@ -459,7 +482,7 @@ def _main(argv: Optional[Sequence[str]], comm: MPI.Comm) -> int:
         if comm.rank == 0:
             result.write_json(sys.stdout)
     else:
-        print0(comm, _summary(result))
+        _print0(comm, _summary(result))
     return 0
 
 
