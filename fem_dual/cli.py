@@ -209,7 +209,11 @@ def _write_files(comm: MPI.Comm, result: RunResult, files: dict) -> Optional[str
                 result.output_files += [str(p) for p in write_plots(result, files["plot"])]
         except OSError as exc:
             problem = f"could not write {exc.filename or 'the output'}: {exc.strerror or exc}"
-    return comm.bcast(problem, root=0)
+    problem = comm.bcast(problem, root=0)
+    if problem:  # the JSON says so too
+        result.status = "failed"
+        result.message = f"{result.message}; {problem}" if result.message else problem
+    return problem
 
 
 def _kept(result: RunResult) -> str:
@@ -224,6 +228,25 @@ def _kept(result: RunResult) -> str:
     if result.output_slabs == slabs:
         return f"{text} in {where}"
     return f"{text}; {where} holds the first {result.output_slabs}"
+
+
+_JSON_STREAM = None  # where the JSON goes when stdout is kept for it alone
+
+
+def _json_only_on_stdout() -> None:
+    """For the rest of the process, everything but the JSON that is printed on stdout (PETSc's
+    banner, -help, -log_view and -options_left at finalisation, monitors; petsc4py prints
+    through sys.stdout, C code through descriptor 1) goes to stderr; the JSON alone keeps the
+    real stdout."""
+    global _JSON_STREAM
+    sys.stdout.flush()
+    saved = os.dup(1)
+    os.dup2(2, 1)
+    _JSON_STREAM = os.fdopen(saved, "w", encoding="utf-8")
+
+
+def _json_out():
+    return _JSON_STREAM if _JSON_STREAM is not None else sys.stdout
 
 
 @contextmanager
@@ -326,7 +349,7 @@ def _bench(args, params, comm: MPI.Comm) -> int:
         bm.write_csv(rows, out / "bench.csv")
         bm.plot(rows, out / "bench.png", f"{args.scene}, T = {base.T:g}")
         if args.json:
-            print(json.dumps({"rows": rows}, allow_nan=False))
+            print(json.dumps({"rows": rows}, allow_nan=False), file=_json_out(), flush=True)
         else:
             print(bm.table(rows))
             peers = [m for m in ("DOP853", "Radau", "LSODA", "expm")
@@ -355,7 +378,7 @@ def _flutter(args, params, comm: MPI.Comm) -> int:
                             slabs=args.slabs, x0=x0, v0=v0)
     found = flutter(base, comm)
     if args.json:
-        _print0(comm, json.dumps(found, allow_nan=False))
+        _print0(comm, json.dumps(found, allow_nan=False), file=_json_out(), flush=True)
     else:
         gap = abs(found["dual"] - found["eigen"]) / found["eigen"]
         _print0(comm, f"critical load of {args.scene}: eigenvalues {found['eigen']:.6f} "
@@ -378,7 +401,8 @@ def _stress(args, comm: MPI.Comm) -> int:
     passed = all(r.status != "FAIL" for r in rows)
     if args.json:
         _print0(comm, json.dumps({"rows": [dataclasses.asdict(r) for r in rows],
-                                 "passed": passed}, allow_nan=False))
+                                 "passed": passed}, allow_nan=False), file=_json_out(),
+                flush=True)
     else:
         _print0(comm, st.table(rows))
         _print0(comm, f"{sum(r.status != 'FAIL' for r in rows)} of {len(rows)} cases behaved as "
@@ -396,9 +420,12 @@ def main(argv: Optional[Sequence[str]] = None, comm: "Optional[MPI.Comm]" = None
 def _main(argv: Optional[Sequence[str]], comm: "Optional[MPI.Comm]") -> int:
     if argv is None and hasattr(signal, "SIGPIPE"):  # `fem-dual ... | head`: end quietly, as
         signal.signal(signal.SIGPIPE, signal.SIG_DFL)  # Unix tools do (not PETSc's handler)
+    process = argv is None  # the command itself, not a call from Python
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
         args = build_parser().parse_args(_join_negative_values(argv))
+        if process and getattr(args, "json", False):
+            _json_only_on_stdout()
         if args.command == "scenes":
             _print0(comm, _list_scenes())
             return 0
@@ -453,7 +480,8 @@ def _main(argv: Optional[Sequence[str]], comm: "Optional[MPI.Comm]") -> int:
         return InputError.exit_status
     except SolveError as exc:
         interrupted = isinstance(exc, faults.Interrupted)
-        what = "stopped" if interrupted else "solve failed"
+        what = "stopped" if interrupted else "failed" if "writing the output" in str(exc) \
+            else "solve failed"
         kept = _kept(exc.partial) if exc.partial is not None else ""
         _print0(comm, f"fem-dual: {what}: {_one_line(exc)}{kept}", file=sys.stderr)
         if exc.partial is not None and args.command == "run":
@@ -461,7 +489,7 @@ def _main(argv: Optional[Sequence[str]], comm: "Optional[MPI.Comm]") -> int:
             if problem:
                 _print0(comm, f"fem-dual: error: {_one_line(problem)}", file=sys.stderr)
             if args.json and comm.rank == 0:
-                exc.partial.write_json(sys.stdout)
+                exc.partial.write_json(_json_out())
         return exc.exit_status
     except Exception as exc:  # a bug: say so, and end every rank (others may wait for this one)
         import traceback
@@ -476,11 +504,11 @@ def _main(argv: Optional[Sequence[str]], comm: "Optional[MPI.Comm]") -> int:
     if problem:  # the run is done; its output is not: a failure, not bad input
         _print0(comm, f"fem-dual: error: {_one_line(problem)}", file=sys.stderr)
         if args.json and comm.rank == 0:
-            result.write_json(sys.stdout)
+            result.write_json(_json_out())
         return SolveError.exit_status
     if args.json:
         if comm.rank == 0:
-            result.write_json(sys.stdout)
+            result.write_json(_json_out())
     else:
         _print0(comm, _summary(result))
     return 0

@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import signal
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
@@ -95,8 +97,15 @@ class RunResult:
         """Columns t, x1..xn, v1..vn at the output times."""
         n = self.x.shape[1] if self.x.ndim == 2 else 0
         head = ",".join(["t"] + [f"x{i + 1}" for i in range(n)] + [f"v{i + 1}" for i in range(n)])
-        np.savetxt(path, np.column_stack([self.t, self.x, self.v]), delimiter=",", header=head,
-                   comments="", fmt="%.17g")
+        path = Path(path)
+        tmp = path.with_name(f".{path.name}.tmp")  # complete or absent: a full disk left a
+        try:  # file cut mid-number that parsed as a row
+            np.savetxt(tmp, np.column_stack([self.t, self.x, self.v]), delimiter=",",
+                       header=head, comments="", fmt="%.17g")
+            os.replace(tmp, path)
+        finally:
+            if tmp.exists():
+                tmp.unlink()
 
     @property
     def final(self) -> Dict[str, List[float]]:

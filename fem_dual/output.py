@@ -33,7 +33,8 @@ import numpy as np
 from fem_dual.errors import InputError
 
 __all__ = ["XdmfSeries", "write_polyline", "check_output_dir", "check_output_dir_on_root",
-           "read_series", "FLUSH_SECONDS", "series_files"]
+           "read_series", "FLUSH_SECONDS", "series_files", "written_by_us", "lock_directory",
+           "MARK"]
 
 FLUSH_SECONDS = 0.5  # buffered slabs reach the disk at least this often
 FLUSH_ROWS_BYTES = 64 << 20  # ... or when the buffer holds this much
@@ -92,6 +93,61 @@ def ensure_space(directory: Path, needed: int) -> None:
                       f"{directory}, {needed} needed)")
 
 
+MARK = "<!-- written by fem-dual; its next run into this directory replaces it -->"
+
+
+def written_by_us(path: Path) -> bool:
+    """Whether `path` is a file fem-dual wrote (an XDMF with our mark, an HDF5 file with our
+    attribute): a run replaces those, never a user's file of the same name."""
+    if path.is_symlink() or not path.is_file():
+        return False
+    try:
+        if path.suffix == ".h5":
+            import h5py
+
+            with h5py.File(path, "r", locking=False) as h5:
+                return "fem_dual" in h5.attrs
+        with open(path, "rb") as f:
+            return MARK.encode() in f.read(400)
+    except (OSError, ValueError):
+        return False
+
+
+def lock_directory(directory: Path):
+    """An exclusive lock on `directory` for one run (released by calling what is returned, or
+    when the process ends): two runs writing the same files would mix their slabs."""
+    import fcntl
+
+    fd = os.open(directory, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        raise InputError(f"--out {directory} is in use by another fem-dual run") from None
+
+    def release(fd=fd) -> None:
+        try:
+            os.close(fd)
+        except OSError:
+            pass
+    return _Release(release)
+
+
+class _Release:
+    """Calls `release` once."""
+
+    def __init__(self, release):
+        self._release = release
+
+    def __call__(self) -> None:
+        release, self._release = self._release, None
+        if release is not None:
+            release()
+
+    def __del__(self) -> None:
+        self()
+
+
 def series_files(out: Path, name: str) -> List[Path]:
     """The files a run of scene `name` writes into `out` (series and trajectory)."""
     return [out / f"{name}{tail}" for tail in (".xdmf", ".h5", "_trajectory.xdmf",
@@ -144,7 +200,7 @@ def _grid_xml(h5name: str, prefix: str, npoints: int, ncells: int) -> List[str]:
 
 
 def _head_xml(body: List[str]) -> str:
-    return "\n".join(['<?xml version="1.0"?>',
+    return "\n".join(['<?xml version="1.0"?>', MARK,
                       '<Xdmf Version="3.0" xmlns:xi="http://www.w3.org/2001/XInclude">',
                       "<Domain>", *body, ""])
 
@@ -202,7 +258,7 @@ class XdmfSeries:
                         h5.create_dataset(f"{group}/{name}", shape=(0,) + tuple(shape),
                                           maxshape=(None,) + tuple(shape),
                                           chunks=(rows,) + tuple(shape), dtype="f8")
-                h5.attrs["fem_dual"] = json.dumps(attrs)
+                h5.attrs["fem_dual"] = json.dumps(dict(attrs))
 
         ensure_space(path.parent, SPACE_MARGIN + 2 * pts.nbytes)
         _replace_atomically(self.h5path, write_h5)
@@ -349,6 +405,7 @@ def write_polyline(path: Path, points: np.ndarray, data: Dict[str, np.ndarray]) 
 
     def write_h5(tmp: Path) -> None:
         with h5py.File(tmp, "w", locking=False) as h5:
+            h5.attrs["fem_dual"] = "trajectory"
             h5.create_dataset("mesh/geometry", data=pts)
             h5.create_dataset("mesh/topology", data=lines)
             for name, values in data.items():

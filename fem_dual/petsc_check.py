@@ -88,6 +88,7 @@ _BOOL_TAILS = ("error_if_not_converged", "initial_guess_nonzero", "reuse_precond
 _TRUE = {"", "1", "true", "yes", "on"}
 _FALSE = {"0", "false", "no", "off"}
 _INT = re.compile(r"[+-]?\d+")
+PETSC_INT_MAX = 2**31 - 1  # PetscInt of Debian's PETSc 3.18 (32-bit indices)
 _REAL = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?")
 _NAME = re.compile(r"[A-Za-z0-9_]+")
 _MUMPS = re.compile(r"(.*_)?mat_mumps_(i?)cntl_\d+")
@@ -330,6 +331,8 @@ def _int_problem(value: str, low: Optional[int]) -> Optional[str]:
         return "not an integer"
     if low is not None and int(value) < low:
         return f"must be at least {low}"
+    if int(value) > PETSC_INT_MAX:  # PETSc would wrap it (ksp_max_it=2147483648 ran as -1)
+        return f"exceeds PETSc's integer range (at most {PETSC_INT_MAX})"
     return None
 
 

@@ -14,7 +14,8 @@ import numpy as np
 
 from fem_dual.config import RunConfig
 from fem_dual.errors import InputError
-from fem_dual.output import XdmfSeries, series_files, write_polyline
+from fem_dual.output import (XdmfSeries, lock_directory, series_files, write_polyline,
+                             written_by_us)
 from fem_dual.recovery import VertexValues
 from fem_dual.stepper import SlabEstimate
 
@@ -150,9 +151,14 @@ class XdmfSink:
         self.identity = run_identity(config)
         self.series: Optional[XdmfSeries] = resume.series if resume is not None else None
         self.seconds = 0.0
+        self._lock = lock_directory(self.out)
         if resume is None:
             for stale in series_files(self.out, name):
-                if stale.exists():
+                if stale.exists() or stale.is_symlink():
+                    if not written_by_us(stale):
+                        self.release()
+                        raise InputError(f"--out {self.out}: {stale.name} was not written by "
+                                         "fem-dual; move it away or choose another directory")
                     stale.unlink()
 
     def add(self, slab: AcceptedSlab) -> None:
@@ -173,8 +179,13 @@ class XdmfSink:
             self.series.close()
             write_polyline(self.out / f"{self.name}_trajectory.xdmf", x, {"t": t, "v_hat": v})
         self.seconds += time.perf_counter() - tic
+        self.release()
         return self.files_on_disk()
 
+
+    def release(self) -> None:
+        """Let other runs write into the directory again."""
+        self._lock()
 
     @property
     def slabs_written(self) -> int:
@@ -184,6 +195,31 @@ class XdmfSink:
     def files_on_disk(self) -> List[str]:
         """Our files that exist (after a failed close)."""
         return [str(p) for p in series_files(self.out, self.name) if p.exists()]
+
+
+_RESTART_FIELDS = {"slab": 12, "s": None, "local": None, "glob": None}
+
+
+def _check_restart(path: Path, stored, steps: Dict[str, np.ndarray],
+                   restart: Dict[str, np.ndarray]) -> None:
+    """InputError unless the stored run is whole: an options record, as many rows of every
+    field as slabs, finite values (a damaged or edited file must not reach the results)."""
+    what = None
+    if not isinstance(stored, dict):
+        what = "its options record is not one"
+    elif set(restart) != set(_RESTART_FIELDS) or not {"x_hat", "v_hat", "hamiltonian"} <= set(
+            steps):
+        what = "datasets are missing"
+    else:
+        rows = {name: len(a) for name, a in {**steps, **restart}.items()}
+        if len(set(rows.values())) != 1:
+            what = f"its datasets hold different numbers of slabs ({rows})"
+        elif restart["slab"].ndim != 2 or restart["slab"].shape[1] != _RESTART_FIELDS["slab"]:
+            what = "its slab records have the wrong shape"
+        elif not all(np.isfinite(a).all() for a in (*steps.values(), *restart.values())):
+            what = "it holds values that are not finite"
+    if what:
+        raise InputError(f"--resume: {path} cannot be resumed: {what}")
 
 
 class Restart:
@@ -201,9 +237,10 @@ class Restart:
                 stored = json.loads(h5.attrs["fem_dual"])
                 steps = {k: h5["steps"][k][:] for k in h5["steps"]}
                 restart = {k: h5["restart"][k][:] for k in h5["restart"]}
-        except (OSError, KeyError, ValueError) as exc:
+        except (OSError, KeyError, ValueError, TypeError) as exc:
             raise InputError(f"--resume: {path.with_suffix('.h5')} cannot be read ({exc})") \
                 from None
+        _check_restart(path.with_suffix(".h5"), stored, steps, restart)
         mine = run_identity(config)
         for key in mine:
             if stored.get(key) != json.loads(json.dumps(mine[key])):

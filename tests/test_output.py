@@ -191,12 +191,60 @@ def test_full_disk_is_a_failure_with_json_and_readable_files(tmp_path, monkeypat
 
 @pytest.mark.serial
 def test_stale_files_of_an_earlier_run_do_not_survive(tmp_path, capsys):
-    for name in ("ziegler.xdmf", "ziegler.h5", "ziegler_trajectory.xdmf"):
-        (tmp_path / name).write_text("earlier run")
+    assert main(["run", "ziegler", "--T", "2", "--slabs", "2", "--cells", "8",
+                 "--out", str(tmp_path)]) == 0
+    assert len(list(tmp_path.iterdir())) == 4
     # under-resolved from the first slab: fails before any slab is written
     assert main(["run", "ziegler", "--T", "2000", "--slabs", "1", "--cells", "2", "--degree",
                  "2", "--max-halvings", "0", "--out", str(tmp_path)]) == 3
     assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+@pytest.mark.serial
+def test_files_fem_dual_did_not_write_are_never_removed(tmp_path, capsys):
+    for name in ("ziegler.xdmf", "ziegler.h5", "ziegler_trajectory.h5"):
+        (tmp_path / name).write_text("precious")
+    assert main(["run", "ziegler", "--T", "2", "--slabs", "2", "--cells", "8",
+                 "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "not written by fem-dual" in err
+    assert all((tmp_path / name).read_text() == "precious"
+               for name in ("ziegler.xdmf", "ziegler.h5", "ziegler_trajectory.h5"))
+
+
+@pytest.mark.serial
+def test_two_runs_never_write_one_directory(tmp_path):
+    proc = _start(LONG, tmp_path)
+    try:
+        _wait_for_steps(tmp_path)
+        done = subprocess.run([FEM_DUAL, "run", "curl2d", "--T", "1", "--out", str(tmp_path)],
+                              capture_output=True, text=True)
+        assert done.returncode == 2 and "in use by another fem-dual run" in done.stderr
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.communicate(timeout=60)
+
+
+def _tamper(path: Path, edit) -> None:
+    with h5py.File(path, "a") as h5:
+        edit(h5)
+
+
+@pytest.mark.serial
+@pytest.mark.parametrize("edit", [
+    lambda h5: h5.attrs.__setitem__("fem_dual", "[1, 2]"),
+    lambda h5: h5["steps/x_hat"].resize(1, axis=0),
+    lambda h5: h5["restart/slab"].__setitem__((1, 2), np.nan),
+    lambda h5: h5.__delitem__("restart/glob"),
+])
+def test_resume_refuses_a_damaged_file(tmp_path, capsys, edit):
+    args = ["run", "ziegler", "--T", "4", "--slabs", "2", "--cells", "8", "--out", str(tmp_path)]
+    assert main(args) == 0
+    _tamper(tmp_path / "ziegler.h5", edit)
+    capsys.readouterr()
+    assert main(args + ["--resume"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err and "--resume" in err
 
 
 @pytest.mark.serial
@@ -231,3 +279,41 @@ def test_an_output_error_on_rank_0_only_ends_every_rank(tmp_path_factory, monkey
     assert info.value.partial.status == "failed"
     assert len(info.value.partial.slab_lengths) == 3
     assert info.value.partial.output_slabs == 2
+
+
+@pytest.mark.serial
+@pytest.mark.parametrize("options", ["-log_view", "-options_left", "-help"])
+def test_petsc_printing_at_start_or_exit_leaves_json_alone(options):
+    done = subprocess.run([FEM_DUAL, "run", "ziegler", "--T", "2", "--slabs", "2", "--cells",
+                           "8", "--json"], capture_output=True, text=True,
+                          env=dict(os.environ, PETSC_OPTIONS=options))
+    assert done.returncode == 0, done.stderr[-500:]
+    assert json.loads(done.stdout)["status"] == "ok"  # one JSON object and nothing else
+    assert len(done.stderr) > 100  # PETSc's output went there
+
+
+@pytest.mark.serial
+def test_petsc_integer_beyond_its_range_is_bad_input(capsys):
+    assert main(["run", "ziegler", "--T", "2", "--petsc-option", "ksp_type=cg",
+                 "--petsc-option", "ksp_max_it=2147483648"]) == 2
+    assert "ksp_max_it=2147483648" in capsys.readouterr().err
+
+
+@pytest.mark.serial
+def test_a_failed_csv_write_says_failed_and_leaves_no_partial_file(tmp_path, capsys,
+                                                                   monkeypatch):
+    import fem_dual.driver as driver_module
+
+    def full(path, *args, **kwargs):
+        with open(path, "w") as f:
+            f.write("t,x1\n0.0,0.1\n1.5,0.")  # cut mid-number, as a full disk leaves it
+        raise OSError(28, "No space left on device", str(path))
+    monkeypatch.setattr(driver_module.np, "savetxt", full)
+    status = main(["run", "ziegler", "--T", "2", "--slabs", "2", "--cells", "8", "--json",
+                   "--csv", str(tmp_path / "x.csv")])
+    monkeypatch.undo()
+    captured = capsys.readouterr()
+    assert status == 3 and "No space left on device" in captured.err
+    data = json.loads(captured.out)
+    assert data["status"] == "failed" and "No space left" in data["message"]
+    assert list(tmp_path.iterdir()) == []
