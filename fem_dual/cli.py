@@ -490,6 +490,9 @@ def _main(argv: Optional[Sequence[str]], comm: "Optional[MPI.Comm]") -> int:
                 _print0(comm, f"fem-dual: error: {_one_line(problem)}", file=sys.stderr)
             if args.json and comm.rank == 0:
                 exc.partial.write_json(_json_out())
+        elif args.command == "flutter" and args.json:  # what the search could not decide
+            _print0(comm, json.dumps({"status": "failed", "message": str(exc)}),
+                    file=_json_out(), flush=True)
         return exc.exit_status
     except Exception as exc:  # a bug: say so, and end every rank (others may wait for this one)
         import traceback

@@ -1,5 +1,7 @@
 """Damped linear systems and the flutter load found by dual simulations (issue: beyond the
 reference)."""
+import json
+
 import numpy as np
 import pytest
 from mpi4py import MPI
@@ -254,3 +256,11 @@ def test_a_failed_dual_simulation_is_a_solve_error(monkeypatch, capsys):
 def test_flutter_needs_a_moving_start_state(capsys):
     assert main(["flutter", "ziegler", "--x0", "0,0", "--v0", "0,0"]) == 2
     assert "start state that moves" in capsys.readouterr().err
+
+
+def test_flutter_json_failure_is_one_json_object(capsys):
+    assert main(["flutter", "ziegler", "--json", "--T", "1e-6"]) == 3
+    captured = capsys.readouterr()
+    assert captured.err.count("\n") == 1
+    data = json.loads(captured.out)
+    assert data["status"] == "failed" and "window" in data["message"]
