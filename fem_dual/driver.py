@@ -97,11 +97,14 @@ class RunResult:
         """Columns t, x1..xn, v1..vn at the output times."""
         n = self.x.shape[1] if self.x.ndim == 2 else 0
         head = ",".join(["t"] + [f"x{i + 1}" for i in range(n)] + [f"v{i + 1}" for i in range(n)])
+        rows = np.column_stack([self.t, self.x, self.v])
         path = Path(path)
+        if path.exists() and not path.is_file():  # a device or a pipe: write into it
+            np.savetxt(path, rows, delimiter=",", header=head, comments="", fmt="%.17g")
+            return
         tmp = path.with_name(f".{path.name}.tmp")  # complete or absent: a full disk left a
         try:  # file cut mid-number that parsed as a row
-            np.savetxt(tmp, np.column_stack([self.t, self.x, self.v]), delimiter=",",
-                       header=head, comments="", fmt="%.17g")
+            np.savetxt(tmp, rows, delimiter=",", header=head, comments="", fmt="%.17g")
             os.replace(tmp, path)
         finally:
             if tmp.exists():
