@@ -116,10 +116,12 @@ def run_identity(config: RunConfig) -> Dict[str, Any]:
     """The options that decide a run's slabs and values: a resumed run must repeat them."""
     from fem_dual import __version__
 
+    # rtol before slabs: a run with --rtol has slabs=1, so rtol names the difference
     return {"scene": config.scene.name, "parameters": config.scene.parameters(), "T": config.T,
-            "cells": config.cells, "degree": config.degree, "slabs": config.slabs,
-            "x0": config.x0.tolist(), "v0": config.v0.tolist(), "rtol": config.rtol,
-            "atol": config.atol, "base": config.base, "coordinates": config.coordinates,
+            "cells": config.cells, "degree": config.degree, "rtol": config.rtol,
+            "atol": config.atol, "slabs": config.slabs,
+            "x0": config.x0.tolist(), "v0": config.v0.tolist(),
+            "base": config.base, "coordinates": config.coordinates,
             "recovery": config.recovery, "assembly": config.assembly,
             "staging": config.staging, "superpose": config.superpose,
             "max_halvings": config.max_halvings, "petsc": dict(sorted(config.petsc.items())),
