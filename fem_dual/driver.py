@@ -26,7 +26,7 @@ from fem_dual.errors import InputError, SolveError
 from fem_dual.modal import ModalBasis
 from fem_dual.kronecker import (KroneckerProblem, KroneckerSampler, KroneckerSolver,
                                 KroneckerSuperposition)
-from fem_dual.mpi import allreduce, bcast
+from fem_dual.mpi import allreduce, bcast, input_on_root
 from fem_dual.output import check_output_dir_on_root
 from fem_dual.sinks import AcceptedSlab, Accumulator, ProgressSink, Restart, XdmfSink
 from fem_dual import faults
@@ -493,23 +493,6 @@ def _on_root(comm: MPI.Comm, action) -> Optional[str]:
     return problem
 
 
-def _root_input(comm: MPI.Comm, build):
-    """build() on rank 0 (None elsewhere); its InputError or OSError an InputError on every
-    rank."""
-    value, problem = None, None
-    if comm.rank == 0:
-        try:
-            value = build()
-        except InputError as exc:
-            problem = str(exc)
-        except OSError as exc:
-            problem = f"--out: {exc.filename or ''} {exc.strerror or exc}".replace("  ", " ")
-    problem = bcast(comm, problem)
-    if problem:
-        raise InputError(problem)
-    return value
-
-
 class _LoopState:
     """Where the slab loop stands: slab index, start state and its estimated error, lengths."""
 
@@ -548,8 +531,8 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool,
     acc = Accumulator(config) if root else None
     # bad or mismatched files to resume, an output directory that cannot take our files: bad
     # input, on every rank
-    restart = _root_input(comm, lambda: Restart(config, scene.name)) if resume else None
-    xdmf = None if config.out is None else _root_input(
+    restart = input_on_root(comm, lambda: Restart(config, scene.name)) if resume else None
+    xdmf = None if config.out is None else input_on_root(
         comm, lambda: XdmfSink(config, scene.name, restart))
     bar = ProgressSink(config.T) if (progress and root) else None
     sinks = [s for s in (acc, xdmf, bar) if s is not None]

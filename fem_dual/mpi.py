@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 from mpi4py import MPI
 
-__all__ = ["allreduce", "gather_rows", "bcast", "print0", "is_root"]
+__all__ = ["allreduce", "gather_rows", "bcast", "print0", "is_root", "input_on_root"]
 
 
 def is_root(comm: MPI.Comm) -> bool:
@@ -41,3 +41,22 @@ def bcast(comm: MPI.Comm, obj: Any) -> Any:
     if comm.size == 1:
         return obj
     return comm.bcast(obj, root=0)
+
+
+def input_on_root(comm: MPI.Comm, build: Any) -> Any:
+    """build() on rank 0 (None elsewhere); its InputError (or OSError, a path that cannot be
+    used) an InputError on every rank, so no rank goes on into collective work alone."""
+    from fem_dual.errors import InputError
+
+    value, problem = None, None
+    if comm.rank == 0:
+        try:
+            value = build()
+        except InputError as exc:
+            problem = str(exc)
+        except OSError as exc:
+            problem = f"--out: {exc.filename or ''} {exc.strerror or exc}".replace("  ", " ")
+    problem = bcast(comm, problem)
+    if problem:
+        raise InputError(problem)
+    return value

@@ -64,18 +64,9 @@ def check_output_dir_on_root(comm, path: "str | os.PathLike",
                              option: str = "--out") -> Optional[Path]:
     """check_output_dir on rank 0 (which writes), its InputError raised on every rank, so no rank
     goes on into collective work alone. The directory on rank 0, None elsewhere."""
-    from fem_dual.mpi import bcast
+    from fem_dual.mpi import input_on_root
 
-    out, problem = None, None
-    if comm.rank == 0:
-        try:
-            out = check_output_dir(path, option)
-        except InputError as exc:
-            problem = str(exc)
-    problem = bcast(comm, problem)
-    if problem:
-        raise InputError(problem)
-    return out
+    return input_on_root(comm, lambda: check_output_dir(path, option))
 
 
 def free_bytes(directory: Path) -> int:
@@ -263,16 +254,18 @@ class XdmfSeries:
         ensure_space(path.parent, SPACE_MARGIN + 2 * pts.nbytes)
         _replace_atomically(self.h5path, write_h5)
         self.broken = ""
-        mesh = (['<Grid Name="mesh" GridType="Uniform">']
-                + _grid_xml(self.h5name, "mesh", len(pts), len(lines)) + ["</Grid>",
-                '<Grid Name="TimeSeries" GridType="Collection" CollectionType="Temporal">'])
-        self._start_xml(_head_xml(mesh), steps=0)
+        self._start_xml(len(pts), len(lines), steps=0)
         self.buffer: List[Tuple[float, Dict[str, np.ndarray], Dict[str, np.ndarray]]] = []
         self.buffered_bytes = 0
         self.last_flush = time.monotonic()
 
-    def _start_xml(self, head: str, steps: int) -> None:
+    def _start_xml(self, npoints: int, ncells: int, steps: int) -> None:
+        """The XML of the mesh and the first `steps` rows, written whole (atomically)."""
         self.count = steps  # rows on disk, in the HDF5 file and the XML alike
+        head = _head_xml(['<Grid Name="mesh" GridType="Uniform">']
+                         + _grid_xml(self.h5name, "mesh", npoints, ncells) + ["</Grid>",
+                         '<Grid Name="TimeSeries" GridType="Collection" '
+                         'CollectionType="Temporal">'])
         text = head + "".join(self._step_xml(k, None) for k in range(steps))
         _replace_atomically(self.path, lambda tmp: tmp.write_text(text + _TAIL))
         self.tail_offset = len(text.encode())
@@ -293,10 +286,7 @@ class XdmfSeries:
             steps = len(h5["steps/time"])
             self._times = h5["steps/time"][:]
             npts, ncells = len(h5["mesh/geometry"]), len(h5["mesh/topology"])
-        mesh = (['<Grid Name="mesh" GridType="Uniform">']
-                + _grid_xml(self.h5name, "mesh", npts, ncells) + ["</Grid>",
-                '<Grid Name="TimeSeries" GridType="Collection" CollectionType="Temporal">'])
-        self._start_xml(_head_xml(mesh), steps)
+        self._start_xml(npts, ncells, steps)
         del self._times
         self.buffer, self.buffered_bytes = [], 0
         self.last_flush = time.monotonic()
