@@ -480,17 +480,17 @@ def _one_line(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {text}" if not isinstance(exc, OSError) else text
 
 
-def _on_root(comm: MPI.Comm, action) -> Optional[str]:
-    """Run `action()` on rank 0; why it failed (one line), or None, on every rank: an error
-    on rank 0 (a full disk, a bug) ends the run on all ranks instead of leaving them waiting
-    in the next collective."""
-    problem = None
-    if comm.rank == 0:
-        try:
-            action()
-        except Exception as exc:  # noqa: BLE001 -- shared, then raised on every rank
-            problem = _one_line(exc)
-    return problem
+def _on_root(comm: MPI.Comm, action) -> Tuple[Any, Optional[str]]:
+    """action() on rank 0: (its value, why it failed in one line or None); (None, None)
+    elsewhere. Not collective: the caller shares the outcome with its next broadcast, so an
+    error on rank 0 (a full disk, a bug) ends the run on every rank instead of leaving them
+    waiting in the next collective."""
+    if comm.rank != 0:
+        return None, None
+    try:
+        return action(), None
+    except Exception as exc:  # noqa: BLE001 -- shared, then raised on every rank
+        return None, _one_line(exc)
 
 
 class _LoopState:
@@ -557,7 +557,6 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool,
         k, z, d = state.k, state.z, state.d
         t0, dt = schedule.current()
         t1 = time.perf_counter()
-        verdict = None
         try:
             if guarded:
                 check_resolution(rate, dt, sim.cells, config.degree)
@@ -571,14 +570,10 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool,
             lost = sim.unresolved(z, dt)
             companion = sim.companion.solve_slab(z, t0, dt)
             timings["estimate_s"] += time.perf_counter() - t2
-
-            def judge() -> None:
-                nonlocal verdict
-                verdict = _judge(vals, companion, algebraic, psi, lost, weights, bound, t0, dt,
-                                 config.T)
-            problem = _on_root(comm, judge)
-            action, err, reason = bcast(comm, verdict[:3] if root else None) if not problem \
-                else ("error", None, problem)
+            verdict, problem = _on_root(comm, lambda: _judge(
+                vals, companion, algebraic, psi, lost, weights, bound, t0, dt, config.T))
+            shared = (("error", None, problem) if problem else verdict[:3]) if root else None
+            action, err, reason = bcast(comm, shared)
         except SolveError as exc:
             action, err, reason = "retry", None, str(exc)
         timings["solve_s"] += time.perf_counter() - t1
@@ -594,21 +589,20 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool,
         schedule.accept(step_factor(err, order))
         state.lengths.append(dt)
         state.k += 1
-        nxt = None
 
-        def record() -> None:
-            nonlocal nxt
+        def record() -> Tuple[np.ndarray, np.ndarray]:
+            """The sinks take the slab; the next slab's start state and its error."""
             weights.record(vals.x, vals.v)
             slab = AcceptedSlab(k, t0, dt, vals, verdict[3], (schedule.pos, schedule.length),
                                 (weights.scale_x, weights.scale_v))
-            nxt = (np.concatenate([vals.x[-1], vals.v[-1]]), verdict[3].glob[-1].copy())
             for sink in sinks:
                 sink.add(slab)
-        problem = _on_root(comm, record)
+            return np.concatenate([vals.x[-1], vals.v[-1]]), verdict[3].glob[-1].copy()
+        nxt, problem = _on_root(comm, record)
         signum = faults.requested()
         if comm.size > 1:
             signum = allreduce(comm, signum, "max")
-        shared = ((*nxt, problem) if nxt is not None else (z, d, problem)) if root else None
+        shared = ((z, d, problem) if problem else (*nxt, None)) if root else None
         state.z, state.d, problem = bcast(comm, shared)
         if problem:
             where = f" ({config.out})" if config.out is not None else ""
