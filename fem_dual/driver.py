@@ -7,6 +7,7 @@ RunResult.
 """
 from __future__ import annotations
 
+import copy
 import json
 import math
 import os
@@ -28,7 +29,8 @@ from fem_dual.kronecker import (KroneckerProblem, KroneckerSampler, KroneckerSol
                                 KroneckerSuperposition)
 from fem_dual.mpi import allreduce, bcast, input_on_root
 from fem_dual.output import check_output_dir_on_root
-from fem_dual.sinks import AcceptedSlab, Accumulator, ProgressSink, Restart, XdmfSink
+from fem_dual.sinks import (AcceptedSlab, Accumulator, ProgressSink, Restart, SlabBatch,
+                            XdmfSink)
 from fem_dual import faults
 from fem_dual.newton import NewtonSlabSolver
 from fem_dual.problem import SlabProblem
@@ -213,6 +215,7 @@ class Simulation:
         self._companion: Optional["Simulation"] = None
         self.superposition = None
         self.tangent_solves = 0
+        self._maps: Dict[float, Tuple[np.ndarray, np.ndarray]] = {}
 
     def close(self) -> None:
         """Destroy the PETSc objects of the solver, the sampler, the problem and the companion;
@@ -233,7 +236,14 @@ class Simulation:
             return config.superpose == "yes"
         if config.rtol is not None:  # adaptive lengths recur (powers of two): bases pay off
             return self.scene.linear
-        return self.scene.linear and config.slab_count > 2 * self.scene.n
+        return self.scene.linear and config.slab_count > self.basis_solves()
+
+    def basis_solves(self) -> int:
+        """Slab solves that a basis of one slab length costs (2n, or fewer probes when the
+        solved problem decouples into modes: fem_dual.kronecker.probes)."""
+        if self.kronecker:
+            return KroneckerSuperposition.solves_per_basis(self.problem)
+        return 2 * self.scene.n
 
     @classmethod
     def for_config(cls, config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD) -> "Simulation":
@@ -267,6 +277,7 @@ class Simulation:
         self.solver.reset()
         self.superposition = None
         self.tangent_solves = 0
+        self._maps = {}
         if self.uses_superposition(config):
             kind = KroneckerSuperposition if self.kronecker else Superposition
             self.superposition = kind(self.problem, self.solver, self.sampler, config.T)
@@ -284,6 +295,36 @@ class Simulation:
             self.solver.solve()
             values = self.sampler()
         return values if self.modal is None else self.modal.back(values)
+
+    def solve_batch(self, Z: np.ndarray, dt: float, fields: bool = True, duals: bool = True,
+                    last: bool = False) -> Optional[VertexValues]:
+        """The vertex values of slabs of length dt from the start states Z (slabs, 2n), with a
+        leading slab axis, by superposition, on rank 0 (None elsewhere); without `fields` only
+        x and v, without `duals` no dual fields, with `last` the slab's end only. Collective
+        the first time dt is seen."""
+        if self.modal is None:
+            values = self.superposition.batch(Z, dt, fields, last)
+        else:
+            values = self.superposition.batch(self.modal.forward(Z), dt, fields, last)
+        if values is not None and not duals:
+            values.xi = values.eta = None
+        return values if self.modal is None else self.modal.back(values)
+
+    def slab_maps(self, dt: float) -> Tuple[Optional[np.ndarray], Optional[np.ndarray]]:
+        """(Phi, L) of slabs of length dt (rank 0; None elsewhere): the slab map, z_end =
+        Phi z0, and the estimated local error at the slab's end, L z0 = ESTIMATE_SAFETY x
+        (companion - answer) (without the modes the zero base damps). Collective the first
+        time dt is seen."""
+        if dt not in self._maps:
+            unit = np.eye(2 * self.scene.n)
+            ends = []
+            for sim in (self, self.companion):
+                values = sim.solve_batch(unit, dt, fields=False, last=True)
+                ends.append(None if values is None else
+                            np.hstack([values.x[:, -1], values.v[:, -1]]).T)
+            phi, phi_c = ends
+            self._maps[dt] = (phi, None if phi is None else ESTIMATE_SAFETY * (phi_c - phi))
+        return self._maps[dt]
 
     def tangent(self, z0: np.ndarray, dz: np.ndarray, t0: float, dt: float,
                 values: Optional[VertexValues]) -> Optional[np.ndarray]:
@@ -329,7 +370,8 @@ class Simulation:
 
     def unresolved(self, z0: np.ndarray, dt: float) -> Optional[np.ndarray]:
         """(2n,): the part of z0 in modes the slab does not resolve, which the zero base damps
-        (modal coordinates only: elsewhere the modes are not at hand; None)."""
+        (modal coordinates only: elsewhere the modes are not at hand; None); of many start
+        states (slabs, 2n) at once."""
         if self.modal is None or self.base != "zero":
             return None
         return self.modal.unresolved(z0, dt, self.cells, self.degree)
@@ -380,21 +422,105 @@ class GrowthBound:
         self.kappa = float(np.linalg.cond(U))
         self.z0 = float(np.linalg.norm(np.concatenate([x0, v0])))
 
-    def allows(self, t: float, values: VertexValues) -> bool:
-        z = np.hypot(np.linalg.norm(values.x, axis=1), np.linalg.norm(values.v, axis=1)).max()
+    def allows(self, t, values: VertexValues):
+        """Whether the slab ending at t stays within the bound; of many slabs (t: (slabs,),
+        values with a leading slab axis) at once."""
+        z = np.hypot(np.linalg.norm(values.x, axis=-1), np.linalg.norm(values.v, axis=-1))
         if not np.isfinite(self.kappa):  # defective A: no bound to check against
-            return True
-        return z <= 10 * self.kappa * np.exp(min(self.sigma * t, 700.0)) * self.z0
+            return np.ones(np.shape(t), dtype=bool) if np.ndim(t) else True
+        return z.max(axis=-1) <= 10 * self.kappa * np.exp(np.minimum(self.sigma * np.asarray(t),
+                                                                      700.0)) * self.z0
 
 
-def _insane(vals: VertexValues, bound: Optional[GrowthBound], t: float) -> Optional[str]:
-    """Why the slab's recovered state cannot be right, or None."""
+def _finite(values: VertexValues) -> np.ndarray:
+    """Per slab (values with a leading slab axis): whether every value is finite."""
+    arrays = [values.x, values.v, values.hamiltonian[..., None]] + [
+        a for a in (values.xi, values.eta) if a is not None]
+    return np.logical_and.reduce([np.isfinite(a).reshape(len(a), -1).all(axis=1)
+                                  for a in arrays])
+
+
+@dataclass
+class _Estimates:
+    """The error estimates of consecutive slabs (arrays with a leading slab axis)."""
+
+    local: np.ndarray
+    glob: np.ndarray
+    scales: np.ndarray  # (slabs, 2): the error weights' scales with each slab's motion
+    floor: np.ndarray  # (slabs, 2): round-off floor of x and v errors
+    err_local: np.ndarray  # weighted local error per unit of time (the controller's)
+    err_global: np.ndarray
+
+    def slab(self, j: int, t0: float, dt: float) -> SlabEstimate:
+        return SlabEstimate(t0, dt, self.local[j], self.glob[j], float(self.err_local[j]),
+                            float(self.err_global[j]), tuple(self.floor[j]))
+
+
+def _estimates(vals: VertexValues, companion: VertexValues, algebraic: Optional[np.ndarray],
+               psi: Optional[np.ndarray], lost: Optional[np.ndarray], weights: ErrorWeights,
+               dt, T: float) -> _Estimates:
+    """The estimates of consecutive slabs (values with a leading slab axis; lost (slabs, 2n)),
+    each slab's motion recorded in the weights before the next."""
+    n = vals.x.shape[-1]
+    local = np.concatenate([companion.x - vals.x, companion.v - vals.v], axis=-1)
+    if algebraic is not None:  # the answer's own Newton error (the companion's cancels it)
+        local = local + algebraic
+    local = ESTIMATE_SAFETY * local
+    if lost is not None:  # damped by the zero base: gone from the answer after the start
+        local[:, 1:] += lost[:, None, :]
+    glob = local if psi is None else local + psi
+    scales = weights.running(vals.x, vals.v)
+    # local errors at the round-off floor are not resolved: counted as such they would grow per
+    # unit of time as slabs shrink and drive the lengths down to the minimum
+    floor = ROUNDOFF_REL * scales
+    above = np.concatenate([np.maximum(np.abs(local[..., :n]) - floor[:, None, :1], 0.0),
+                            np.maximum(np.abs(local[..., n:]) - floor[:, None, 1:], 0.0)],
+                           axis=-1)
+    with np.errstate(invalid="ignore", over="ignore"):
+        err_local = weights.norms(above, scales) / (np.asarray(dt) / T)
+        err_global = weights.norms(glob, scales)
+    return _Estimates(local, glob, scales, floor, err_local, err_global)
+
+
+def _batched(values: VertexValues) -> VertexValues:
+    """One slab's values with a leading slab axis of length 1."""
+    return VertexValues(values.s, values.x[None], values.v[None], values.hamiltonian[None],
+                        None if values.xi is None else values.xi[None],
+                        None if values.eta is None else values.eta[None])
+
+
+def _judge(vals: VertexValues, companion: VertexValues, algebraic: Optional[np.ndarray],
+           psi: Optional[np.ndarray], lost: Optional[np.ndarray], weights: ErrorWeights,
+           bound: Optional[GrowthBound],
+           t0: float, dt: float,
+           T: float) -> Tuple[str, Optional[float], str, Optional[SlabEstimate]]:
+    """(action, weighted local error, reason, estimate) for a solved slab on rank 0: "accept",
+    "retry" (shorter) or "refuse" (the run cannot vouch for its answer any more)."""
     if not vals.finite():
-        return "the recovered state is not finite; try more slabs or cells"
-    if bound is not None and not bound.allows(t, vals):
-        return ("the motion outgrows the exact flow's bound (noise amplified in modes the "
-                "slabs do not resolve); use more slabs or cells per slab")
-    return None
+        return "retry", None, "the recovered state is not finite; try more slabs or cells", None
+    if bound is not None and not bound.allows(t0 + dt, vals):
+        return "retry", None, ("the motion outgrows the exact flow's bound (noise amplified in "
+                               "modes the slabs do not resolve); use more slabs or cells per "
+                               "slab"), None
+    one = (lambda a: None if a is None else a[None])
+    est = _estimates(_batched(vals), _batched(companion), one(algebraic), one(psi), one(lost),
+                     weights, dt, T)
+    local, glob = est.local[0], est.glob[0]
+    if not (np.isfinite(local).all() and np.isfinite(glob).all()):
+        return "retry", None, "the error estimate is not finite", None
+    err_local = float(est.err_local[0])
+    slab = est.slab(0, t0, dt)
+    tol = weights.tol
+    what = f"rtol={tol.rtol:g}, atol={tol.atol:g}" if tol.adaptive else \
+        f"{tol.rtol:g} of the motion's scale"
+    if err_local > 1.0:
+        return "retry", err_local, (f"estimated local error {np.abs(local).max():.3g} exceeds "
+                                    f"its share of the tolerance ({what})"), slab
+    if est.err_global[0] > tol.refuse_factor:
+        return "refuse", err_local, (f"estimated error {np.abs(glob).max():.3g} exceeds the "
+                                     f"tolerance ({what}) by a factor "
+                                     f"{est.err_global[0]:.3g}"), slab
+    return "accept", err_local, "", slab
 
 
 def _solves(sim: Simulation) -> int:
@@ -421,51 +547,6 @@ def _schedule(config: RunConfig, cells: int, rate: float) -> SlabSchedule:
         return SlabSchedule(config.T, config.slab_count, config.max_halvings)
     return SlabSchedule(config.T, 1, ADAPTIVE_LEVELS,
                         first=initial_fraction(rate, config.T, cells))
-
-
-def _above(e: np.ndarray, floor: Tuple[float, float]) -> np.ndarray:
-    """|e| less the round-off floor of its part (positions, velocities), at least 0."""
-    n = e.shape[1] // 2
-    return np.hstack([np.maximum(np.abs(e[:, :n]) - floor[0], 0.0),
-                      np.maximum(np.abs(e[:, n:]) - floor[1], 0.0)])
-
-
-def _judge(vals: VertexValues, companion: VertexValues, algebraic: Optional[np.ndarray],
-           psi: Optional[np.ndarray], lost: Optional[np.ndarray], weights: ErrorWeights,
-           bound: Optional[GrowthBound],
-           t0: float, dt: float,
-           T: float) -> Tuple[str, Optional[float], str, Optional[SlabEstimate]]:
-    """(action, weighted local error, reason, estimate) for a solved slab on rank 0: "accept",
-    "retry" (shorter) or "refuse" (the run cannot vouch for its answer any more)."""
-    problem_text = _insane(vals, bound, t0 + dt)
-    if problem_text:
-        return "retry", None, problem_text, None
-    local = np.hstack([companion.x - vals.x, companion.v - vals.v])
-    if algebraic is not None:  # the answer's own Newton error (the companion's cancels it)
-        local = local + algebraic
-    local = ESTIMATE_SAFETY * local
-    if lost is not None:  # damped by the zero base: gone from the answer after the start
-        local[1:] += lost
-    glob = local if psi is None else local + psi
-    if not (np.isfinite(local).all() and np.isfinite(glob).all()):
-        return "retry", None, "the error estimate is not finite", None
-    scales = weights.with_motion(vals.x, vals.v)
-    # local errors at the round-off floor are not resolved: counted as such they would grow per
-    # unit of time as slabs shrink and drive the lengths down to the minimum
-    floor = (ROUNDOFF_REL * scales[0], ROUNDOFF_REL * scales[1])
-    err_local = weights.norm(_above(local, floor), scales) / (dt / T)
-    err_global = weights.norm(glob, scales)
-    est = SlabEstimate(t0, dt, local, glob, err_local, err_global, floor)
-    tol = weights.tol
-    what = f"rtol={tol.rtol:g}, atol={tol.atol:g}" if tol.adaptive else \
-        f"{tol.rtol:g} of the motion's scale"
-    if err_local > 1.0:
-        return "retry", err_local, (f"estimated local error {np.abs(local).max():.3g} exceeds "
-                                    f"its share of the tolerance ({what})"), est
-    if err_global > tol.refuse_factor:
-        return "refuse", err_local, (f"estimated error {np.abs(glob).max():.3g} exceeds the "
-                                     f"tolerance ({what}) by a factor {err_global:.3g}"), est
-    return "accept", err_local, "", est
 
 
 def _advice(config: RunConfig) -> str:
@@ -501,6 +582,7 @@ class _LoopState:
         self.z = np.concatenate([config.x0, config.v0])
         self.d = np.zeros_like(self.z)  # estimated global error of the state at the slab start
         self.lengths: List[float] = []
+        self.batched = 0  # slabs taken in chunks from their slab maps (_batch_step)
         self.resumed_from: Optional[Dict[str, float]] = None
 
     def resume(self, comm: MPI.Comm, restart: Optional[Restart], acc: Optional[Accumulator],
@@ -520,6 +602,141 @@ class _LoopState:
             return
         self.k, self.z, self.d, self.lengths, (schedule.pos, schedule.length), t = state
         self.resumed_from = {"slab": self.k, "t": t}
+
+
+CHUNK_BYTES = 32 * 2**20  # working arrays of one chunk of slabs solved at once
+CHUNK_SLABS = 4096  # at most this many (a signal is answered after a chunk)
+
+
+def _chunk_on_root(sim: Simulation, config: RunConfig, state: _LoopState,
+                   schedule: SlabSchedule, weights: ErrorWeights, bound: Optional[GrowthBound],
+                   count: int) -> Tuple[List[float], np.ndarray, np.ndarray, Optional[SlabBatch]]:
+    """Rank 0's part of `_batch_step`: the next `count` slabs of the current length from their
+    slab maps, judged as `_judge` does. Returns the step factors of the accepted slabs, the
+    state (z, d) after them and the accepted slabs (None: none)."""
+    t0, dt = schedule.current()
+    n = sim.scene.n
+    phi, lend = sim.slab_maps(dt)
+    Z = np.empty((count + 1, 2 * n))
+    Z[0] = state.z
+    for j in range(count):  # slab by slab, as a resumed run repeats it
+        Z[j + 1] = phi @ Z[j]
+    lost = sim.unresolved(Z[:-1], dt)
+    carried = Z[:-1] @ lend.T + (0.0 if lost is None else lost)
+    D = np.empty_like(Z)
+    D[0] = state.d
+    for j in range(count):
+        D[j + 1] = carried[j] + phi @ D[j]
+    vals = sim.solve_batch(Z[:-1], dt, duals=config.out is not None)
+    vals.x[:, -1], vals.v[:, -1] = Z[1:, :n], Z[1:, n:]  # each slab ends where the next starts
+    companion = sim.companion.solve_batch(Z[:-1], dt, fields=False)
+    moved = sim.solve_batch(D[:-1], dt, fields=False)
+    psi = np.concatenate([moved.x, moved.v], axis=-1)
+    est = _estimates(vals, companion, None, psi, lost, weights, dt, config.T)
+    est.glob[:, -1] = D[1:]
+    t0s = (schedule.pos + schedule.length * np.arange(count)) * schedule.T / schedule.total
+    ok = (_finite(vals) & np.isfinite(est.local).reshape(count, -1).all(axis=1)
+          & np.isfinite(est.glob).reshape(count, -1).all(axis=1)
+          & (est.err_local <= 1.0) & (est.err_global <= weights.tol.refuse_factor))
+    if bound is not None:
+        ok &= bound.allows(t0s + dt, vals)
+    order = 2 * config.degree
+    trial = copy.copy(schedule)
+    factors: List[float] = []
+    for j in range(count):  # the accepted run ends where a slab fails or the length changes
+        if not ok[j]:
+            break
+        factors.append(step_factor(float(est.err_local[j]), order))
+        trial.accept(factors[-1])
+        if trial.length != schedule.length:
+            break
+    done = len(factors)
+    batch = None
+    if done:
+        positions = schedule.pos + schedule.length * np.arange(1, done + 1)
+        batch = SlabBatch(state.k, t0s[:done], np.full(done, dt), _slice(vals, done),
+                          est.local[:done], est.glob[:done], est.err_local[:done],
+                          est.err_global[:done], est.floor[:done],
+                          np.column_stack([positions, np.full(done, schedule.length)]),
+                          est.scales[:done])
+        batch.schedule[-1, 1] = trial.length
+        weights.scale_x, weights.scale_v = est.scales[done - 1]
+    return factors, Z[done], D[done], batch
+
+
+def _slice(values: VertexValues, count: int) -> VertexValues:
+    return VertexValues(values.s, values.x[:count], values.v[:count],
+                        values.hamiltonian[:count],
+                        None if values.xi is None else values.xi[:count],
+                        None if values.eta is None else values.eta[:count])
+
+
+def _batch_step(sim: Simulation, config: RunConfig, state: _LoopState, schedule: SlabSchedule,
+                weights: Optional[ErrorWeights], bound: Optional[GrowthBound],
+                sinks: List[Any], check) -> Tuple[int, Optional[SolveError]]:
+    """Solve, judge and record a chunk of equal slabs of a linear scene at once from its slab
+    maps (superposition), instead of slab by slab: (slabs accepted, the failure that ends the
+    run or None). Fixed slabs at their nominal length only; it stops before a slab that
+    `_judge` would not accept or after one that changes the length, which the slab loop then
+    takes. Collective."""
+    comm = sim.comm
+    units = schedule.nominal
+    if (sim.superposition is None or sim.companion.superposition is None
+            or config.rtol is not None or schedule.length != units):
+        return 0, None
+    remaining = (schedule.total - schedule.pos) // units
+    if remaining < 2:
+        return 0, None
+    try:
+        check()
+    except SolveError:  # the slab loop says why
+        return 0, None
+    t0, dt = schedule.current()
+    per_slab = 8 * (sim.cells + 1) * 14 * sim.scene.n
+    count = int(max(1, min(remaining, CHUNK_SLABS, CHUNK_BYTES // per_slab)))
+    try:
+        sim.slab_maps(dt)  # collective: the bases and the check of their slab map
+    except SolveError:  # the slab loop retries shorter
+        return 0, None
+    with np.errstate(all="ignore"):  # a blow-up is judged (not finite), not warned about
+        outcome, problem = _on_root(comm, lambda: _chunk_on_root(
+            sim, config, state, schedule, weights, bound, count))
+    root = comm.rank == 0
+    shared = bcast(comm, ((None, None, None, problem) if problem else (*outcome[:3], None))
+                   if root else None)
+    factors, z, d, problem = shared
+    if problem:
+        return 0, SolveError(f"slab {state.k} (t = {t0:g}): {problem}", slab=state.k)
+    for factor in factors:
+        schedule.accept(factor)
+    k = state.k + len(factors) - 1
+    state.lengths += [dt] * len(factors)
+    state.k += len(factors)
+    if not factors:
+        return 0, None
+    state.z, state.d = z, d
+    batch = outcome[3] if root else None
+    _, problem = _on_root(comm, lambda: [sink.add_batch(batch) for sink in sinks])
+    problem = bcast(comm, problem if root else None)
+    if problem:
+        where = f" ({config.out})" if config.out is not None else ""
+        return len(factors), SolveError(f"slab {k} (t = {t0:g} .. {t0 + len(factors) * dt:g}): "
+                                        f"writing the output failed{where}: {problem}", slab=k)
+    return len(factors), None
+
+
+def _interruption(comm: MPI.Comm, schedule: SlabSchedule, k: int,
+                  T: float) -> Optional[faults.Interrupted]:
+    """The stop a signal asked for (on any rank) after slab k, unless the run is done.
+    Collective."""
+    signum = faults.requested()
+    if comm.size > 1:
+        signum = allreduce(comm, signum, "max")
+    if not signum or schedule.done():
+        return None
+    t = schedule.current()[0]
+    return faults.Interrupted(f"interrupted by {signal.Signals(signum).name} after slab {k} "
+                              f"(t = {t:g} of T = {T:g})", signum, slab=k)
 
 
 def _run_slabs(sim: Simulation, config: RunConfig, progress: bool,
@@ -554,6 +771,20 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool,
     rejected: List[Dict[str, Any]] = []
     failure: Optional[SolveError] = None
     while not schedule.done():
+        t1 = time.perf_counter()
+        batched, failure = _batch_step(
+            sim, config, state, schedule, weights, bound, sinks,
+            lambda: check_resolution(rate, schedule.current()[1], sim.cells, config.degree)
+            if guarded else None)
+        timings["solve_s"] += time.perf_counter() - t1
+        if failure is not None:
+            break
+        if batched:
+            state.batched += batched
+            failure = _interruption(comm, schedule, state.k - 1, config.T)
+            if failure is not None:
+                break
+            continue
         k, z, d = state.k, state.z, state.d
         t0, dt = schedule.current()
         t1 = time.perf_counter()
@@ -599,9 +830,7 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool,
                 sink.add(slab)
             return np.concatenate([vals.x[-1], vals.v[-1]]), verdict[3].glob[-1].copy()
         nxt, problem = _on_root(comm, record)
-        signum = faults.requested()
-        if comm.size > 1:
-            signum = allreduce(comm, signum, "max")
+        failure = _interruption(comm, schedule, k, config.T)
         shared = ((z, d, problem) if problem else (*nxt, None)) if root else None
         state.z, state.d, problem = bcast(comm, shared)
         if problem:
@@ -609,10 +838,7 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool,
             failure = SolveError(f"slab {k} (t = {t0:g} .. {t0 + dt:g}): writing the output "
                                  f"failed{where}: {problem}", slab=k)
             break
-        if signum and not schedule.done():
-            name = signal.Signals(signum).name
-            failure = faults.Interrupted(f"interrupted by {name} after slab {k} (t = "
-                                         f"{t0 + dt:g} of T = {config.T:g})", signum, slab=k)
+        if failure is not None:
             break
     if bar is not None:
         bar.close()
@@ -640,6 +866,7 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool,
         record["halved_slabs"] = rejected
         record["rejected_slabs"] = len(rejected)
         record["superposition"] = sim.superposition is not None
+        record["batched_slabs"] = state.batched
         record["estimates"] = acc.estimates
         record["companion_degree"] = sim.companion.degree
         if scene.linear:

@@ -31,11 +31,12 @@ import scipy.linalg as sla
 from mpi4py import MPI
 from petsc4py import PETSc
 from scipy import sparse
+from scipy.sparse import csgraph
 
 from fem_dual.errors import SolveError
-from fem_dual.recovery import VertexValues
+from fem_dual.recovery import VertexValues, times_last
 from fem_dual.solvers import check_true_residual
-from fem_dual.superposition import stable_or_raise
+from fem_dual.superposition import checked, first, refused, select, stable_or_raise
 
 __all__ = ["TimeMatrices", "KroneckerProblem", "KroneckerSolver", "KroneckerSampler",
            "KroneckerSuperposition", "KRONECKER_DEFAULTS"]
@@ -423,53 +424,137 @@ class KroneckerSampler:
         v = self.p.velocity(np.concatenate([q[1] for q in parts], axis=1))
         return np.hstack([x, v, p.W[::t.degree]])
 
-    def values(self, linear: np.ndarray, xbar: np.ndarray, vbar: np.ndarray) -> VertexValues:
-        """VertexValues from the linear part, with H_d = xi.v + eta.F(x) - eta.D v
-        + H(x - xbar, v - vbar)."""
+    def values(self, linear: np.ndarray, xbar: np.ndarray, vbar: np.ndarray,
+               hamiltonian: bool = True) -> VertexValues:
+        """VertexValues from the linear part (vertices, 4n), or of many slabs (slabs,
+        vertices, 4n) with their base states (slabs, 1, n), with H_d = xi.v + eta.F(x)
+        - eta.D v + H(x - xbar, v - vbar) (left zero without `hamiltonian`)."""
         n, c = self.p.n, self.p.c
-        x, v, xi, eta = (linear[:, k * n:(k + 1) * n] for k in range(4))
-        dx, dv = x - xbar, v - vbar
-        ham = (np.einsum("ij,ij->i", xi, v) - np.einsum("ij,ij->i", eta, x @ c["K"].T)
-               - np.einsum("ij,ij->i", eta, v @ c["D"].T)
-               + 0.5 * np.einsum("ij,ij->i", dx, dx @ c["A"])
-               + 0.5 * np.einsum("ij,ij->i", dv, dv @ c["B"]))
+        x, v, xi, eta = (linear[..., k * n:(k + 1) * n] for k in range(4))
+        if hamiltonian:
+            dx, dv = x - xbar, v - vbar
+            ham = (np.einsum("...j,...j->...", xi, v)
+                   - np.einsum("...j,...j->...", eta, times_last(x, c["K"].T))
+                   - np.einsum("...j,...j->...", eta, times_last(v, c["D"].T))
+                   + 0.5 * np.einsum("...j,...j->...", dx, times_last(dx, c["A"]))
+                   + 0.5 * np.einsum("...j,...j->...", dv, times_last(dv, c["B"])))
+        else:
+            ham = np.zeros(linear.shape[:-1])
         values = VertexValues(s=self.s, x=x, v=v, hamiltonian=ham)
         if self.with_dual:
             values.xi, values.eta = xi, eta
         return values
 
 
+def decoupled_blocks(c: Mapping) -> np.ndarray:
+    """The block of each component (n,) of a slab problem whose matrices M, K, D, A, B couple
+    only components within blocks (modal coordinates: one block per mode or per complex pair;
+    a coupled problem is one block)."""
+    coupling = sum(np.abs(np.asarray(c[k])) for k in ("M", "K", "D", "A", "B")) != 0
+    return csgraph.connected_components(sparse.csr_matrix(coupling), directed=False)[1]
+
+
+def probes(blocks: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """Start states that solve every unit start state of a block-decoupled slab problem at once:
+    (probes (P, 2n), gathers (P, 4n)). Probe (c, part) puts 1 on the c-th component of every
+    block, in the positions (part 0) or the velocities (part 1); its response in a field
+    component belongs to the unit start state gathers[p, column] (2n: none). So P = 2 x the
+    largest block instead of 2n solves."""
+    n = len(blocks)
+    rank = np.zeros(n, dtype=int)  # each component's place within its block
+    members: Dict[int, List[int]] = {}
+    for j, b in enumerate(blocks):
+        rank[j] = len(members.setdefault(int(b), []))
+        members[int(b)].append(j)
+    starts, gathers = [], []
+    for place in range(int(rank.max()) + 1):
+        owner = np.array([members[int(b)][place] if place < len(members[int(b)]) else -1
+                          for b in blocks])  # the c-th member of each component's block
+        for part in (0, 1):
+            z = np.zeros(2 * n)
+            z[part * n + np.flatnonzero(rank == place)] = 1.0
+            column = np.where(owner >= 0, part * n + owner, 2 * n)
+            starts.append(z)
+            gathers.append(np.tile(column, 4))
+    return np.array(starts), np.array(gathers)
+
+
 class KroneckerSuperposition:
     """Slabs of a Kronecker problem from its 2n unit start states (see fem_dual.superposition):
-    x, v, xi, eta at the vertices are linear in z = (x0, v0), H_d follows from them."""
+    x, v, xi, eta at the vertices are linear in z = (x0, v0), H_d follows from them. A problem
+    that decouples into blocks (modal coordinates) solves 2 x its largest block probes
+    (`probes`) instead of the 2n unit start states."""
 
     def __init__(self, problem: KroneckerProblem, solver: KroneckerSolver,
                  sampler: KroneckerSampler, T: float = 0.0):
         self.problem, self.solver, self.sampler = problem, solver, sampler
         self.T = T
-        self._bases: Dict[float, Optional[np.ndarray]] = {}
+        self._bases: Dict[float, Optional[Tuple[np.ndarray, Optional[np.ndarray]]]] = {}
         self.basis_solves = 0
+        n = problem.n
+        self.blocks = decoupled_blocks(problem.c)
+        starts, gathers = probes(self.blocks)
+        if len(starts) < 2 * n:
+            self.starts, self.gathers = starts, gathers
+        else:  # coupled: the unit start states, a dense basis
+            self.starts, self.gathers = np.eye(2 * n), None
+
+    @staticmethod
+    def solves_per_basis(problem: KroneckerProblem) -> int:
+        """Slab solves that one slab length's basis costs."""
+        return min(2 * problem.n, len(probes(decoupled_blocks(problem.c))[0]))
+
+    def ensure(self, dt: float) -> None:
+        """Solve the basis of slabs of length dt unless it is at hand, and check its slab map.
+        Collective."""
+        if refused(self._bases, dt):
+            return
+        p, n = self.problem, self.problem.n
+        responses = []
+        for z in self.starts:
+            p.set_slab(z[:n], z[n:], dt)
+            self.solver.solve()
+            self.basis_solves += 1
+            linear = self.sampler.linear_part()  # collective
+            if linear is not None:
+                responses.append(linear)
+        self._bases[dt] = (np.stack(responses), self.gathers) if responses else None
+        ends = None
+        if responses:  # the slab map: end states (x, v) of the unit start states
+            ends = self._linear(np.eye(2 * n), dt, last=True)[:, -1, :2 * n].T
+        checked(self._bases, dt, lambda: stable_or_raise(
+            p.comm, p.scene, ends, dt, self.T, None if self.gathers is None else self.blocks))
+
+    def _linear(self, Z: np.ndarray, dt: float, last: bool = False) -> np.ndarray:
+        """(slabs, vertices, 4n): x, v, xi, eta of the start states Z (slabs, 2n); with `last`
+        at the slab's end only."""
+        responses, gathers = self._bases[dt]
+        if last:
+            responses = responses[:, -1:]
+        if gathers is None:
+            return np.tensordot(Z, responses, axes=1)
+        padded = np.hstack([Z, np.zeros((len(Z), 1))])  # column 2n: no start state
+        return np.einsum("kpc,pvc->kvc", padded[:, gathers], responses)
+
+    def batch(self, Z: np.ndarray, dt: float, fields: bool = True,
+              last: bool = False) -> Optional[VertexValues]:
+        """Vertex values of the slabs of length dt from the start states Z (slabs, 2n), with a
+        leading slab axis, on rank 0 (None elsewhere); without `fields` only x and v (H_d
+        zero, no dual fields); with `last` only at the slab's end. Collective the first time
+        a slab length is seen."""
+        self.ensure(dt)
+        if self._bases[dt] is None:
+            return None
+        p, n = self.problem, self.problem.n
+        linear = self._linear(Z, dt, last)
+        if p.base == "start":
+            xbar, vbar = Z[:, None, :n], Z[:, None, n:]
+        else:
+            xbar, vbar = p.xbar, p.vbar
+        values = self.sampler.values(linear, xbar, vbar, hamiltonian=fields)
+        if last:
+            values.s = values.s[-1:]
+        return select(values, fields, False)
 
     def __call__(self, x0: np.ndarray, v0: np.ndarray, dt: float) -> Optional[VertexValues]:
-        p, n = self.problem, self.problem.n
-        if dt not in self._bases:
-            basis = []
-            for z in np.eye(2 * n):
-                p.set_slab(z[:n], z[n:], dt)
-                self.solver.solve()
-                self.basis_solves += 1
-                linear = self.sampler.linear_part()  # collective
-                if linear is not None:
-                    basis.append(linear)
-            self._bases[dt] = np.stack(basis) if basis else None
-            ends = None
-            if basis:  # the slab map: end states (x, v) of the unit start states
-                ends = self._bases[dt][:, -1, :2 * n].T
-            stable_or_raise(p.comm, p.scene, ends, dt, self.T)
-        basis = self._bases[dt]
-        if basis is None:
-            return None
-        linear = np.tensordot(np.concatenate([x0, v0]), basis, axes=1)
-        if p.base == "start":
-            return self.sampler.values(linear, x0, v0)
-        return self.sampler.values(linear, p.xbar, p.vbar)
+        return first(self.batch(np.concatenate([x0, v0])[None], dt))

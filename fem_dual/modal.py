@@ -22,7 +22,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from fem_dual.errors import InputError
-from fem_dual.recovery import VertexValues
+from fem_dual.recovery import VertexValues, times_last
 from fem_dual.scenes.base import is_spd
 from fem_dual.scenes.linear import LinearScene
 
@@ -147,33 +147,35 @@ class ModalBasis:
     def unresolved(self, z: np.ndarray, dt: float, cells: int, degree: int) -> np.ndarray:
         """(2n,): how much of the state z (physical) lies in modes that turn more than `degree`
         radians per cell of a slab of length dt, as |x| and |v| per component (summed over
-        those modes). The zero base damps them within a slab: this is what the answer loses,
-        which the companion of degree p + 1, damping them too, cannot show."""
+        those modes); of many states (slabs, 2n) at once. The zero base damps them within a
+        slab: this is what the answer loses, which the companion of degree p + 1, damping them
+        too, cannot show."""
         r = self.forward(z)
-        n = len(r) // 2
+        n = r.shape[-1] // 2
         fast = self.omega * dt / cells > degree
         if not fast.any():
-            return np.zeros(2 * n)
+            return np.zeros(r.shape)
         w = self.omega[fast]
-        amplitude = np.hypot(r[:n][fast], r[n:][fast] / w)  # of the position, per mode
+        amplitude = np.hypot(r[..., :n][..., fast], r[..., n:][..., fast] / w)  # per mode
         size = np.abs(self.U[:, fast])
-        return np.concatenate([size @ amplitude, size @ (w * amplitude)])
+        return np.concatenate([amplitude @ size.T, (w * amplitude) @ size.T], axis=-1)
 
     def forward(self, z: np.ndarray) -> np.ndarray:
-        """(x, v) -> (r, r')."""
-        n = len(z) // 2
-        return np.concatenate([self.Uinv @ z[:n], self.Uinv @ z[n:]])
+        """(x, v) -> (r, r'), of one state (2n,) or many (slabs, 2n)."""
+        n = z.shape[-1] // 2
+        return np.concatenate([times_last(z[..., :n], self.Uinv.T), times_last(z[..., n:], self.Uinv.T)],
+                              axis=-1)
 
     def back(self, values: Optional[VertexValues]) -> Optional[VertexValues]:
         """Vertex values in physical coordinates (dual fields by their pairing: xi_q = U^-T
-        xi_r, eta_q = M^-1 U^-T eta_r; H_d is a scalar)."""
+        xi_r, eta_q = M^-1 U^-T eta_r; H_d is a scalar), of one slab or many."""
         if values is None:
             return None
-        out = VertexValues(s=values.s, x=values.x @ self.U.T, v=values.v @ self.U.T,
+        out = VertexValues(s=values.s, x=times_last(values.x, self.U.T), v=times_last(values.v, self.U.T),
                            hamiltonian=values.hamiltonian)
         if values.xi is not None:
-            out.xi = values.xi @ self.Uinv
-            out.eta = values.eta @ self.eta_map.T
+            out.xi = times_last(values.xi, self.Uinv)
+            out.eta = times_last(values.eta, self.eta_map.T)
         return out
 
 

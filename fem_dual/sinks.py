@@ -8,7 +8,7 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, List, Optional
+from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -19,7 +19,7 @@ from fem_dual.output import (XdmfSeries, lock_directory, series_files, write_pol
 from fem_dual.recovery import VertexValues
 from fem_dual.stepper import SlabEstimate
 
-__all__ = ["AcceptedSlab", "Accumulator", "XdmfSink", "ProgressSink", "run_identity",
+__all__ = ["AcceptedSlab", "SlabBatch", "Accumulator", "XdmfSink", "ProgressSink", "run_identity",
            "Restart"]
 
 
@@ -35,6 +35,56 @@ class AcceptedSlab:
     estimate: SlabEstimate
     schedule: tuple = (0, 0)
     scales: tuple = (0.0, 0.0)
+
+
+@dataclass
+class SlabBatch:
+    """Consecutive accepted slabs in arrays with a leading slab axis (rank 0): what a linear
+    scene's slab maps produce at once (fem_dual.driver), and what the sinks take."""
+
+    first: int  # index of the first slab
+    t0: np.ndarray  # (slabs,)
+    dt: np.ndarray  # (slabs,)
+    values: VertexValues  # x, v, xi, eta: (slabs, vertices, n); hamiltonian (slabs, vertices)
+    local: np.ndarray  # (slabs, vertices, 2n)
+    glob: np.ndarray  # (slabs, vertices, 2n)
+    local_weighted: np.ndarray  # (slabs,)
+    global_weighted: np.ndarray  # (slabs,)
+    floor: np.ndarray  # (slabs, 2)
+    schedule: np.ndarray  # (slabs, 2)
+    scales: np.ndarray  # (slabs, 2)
+
+    def __len__(self) -> int:
+        return len(self.t0)
+
+    @classmethod
+    def of(cls, slab: AcceptedSlab) -> "SlabBatch":
+        v, e = slab.values, slab.estimate
+        one = VertexValues(v.s, v.x[None], v.v[None], v.hamiltonian[None],
+                           None if v.xi is None else v.xi[None],
+                           None if v.eta is None else v.eta[None])
+        return cls(slab.index, np.array([slab.t0]), np.array([slab.dt]), one, e.local[None],
+                   e.glob[None], np.array([e.local_weighted]), np.array([e.global_weighted]),
+                   np.array([e.floor]), np.array([slab.schedule]), np.array([slab.scales]))
+
+    def slab(self, j: int) -> AcceptedSlab:
+        v = self.values
+        values = VertexValues(v.s, v.x[j], v.v[j], v.hamiltonian[j],
+                              None if v.xi is None else v.xi[j],
+                              None if v.eta is None else v.eta[j])
+        estimate = SlabEstimate(float(self.t0[j]), float(self.dt[j]), self.local[j],
+                                self.glob[j], float(self.local_weighted[j]),
+                                float(self.global_weighted[j]), tuple(self.floor[j]))
+        return AcceptedSlab(self.first + j, float(self.t0[j]), float(self.dt[j]), values,
+                            estimate, tuple(int(a) for a in self.schedule[j]),
+                            tuple(self.scales[j]))
+
+    def reported(self) -> Tuple[np.ndarray, np.ndarray]:
+        """SlabEstimate.reported of every slab: (slabs, vertices) each."""
+        n = self.glob.shape[-1] // 2
+        g = np.abs(self.glob)
+        return (np.maximum(g[..., :n].max(axis=-1), self.floor[:, :1]),
+                np.maximum(g[..., n:].max(axis=-1), self.floor[:, 1:]))
 
 
 class Accumulator:
@@ -60,9 +110,13 @@ class Accumulator:
         self.err_rows: List[np.ndarray] = []  # the reference error at every output time
 
     def add(self, slab: AcceptedSlab) -> None:
-        t0, dt, vals = slab.t0, slab.dt, slab.values
-        keep = slice(0 if slab.index == 0 else 1, None)  # each junction once: the end of the slab
-        t = t0 + dt * vals.s[keep]
+        self.add_batch(SlabBatch.of(slab))
+
+    def add_batch(self, batch: SlabBatch) -> None:
+        vals = batch.values
+        keep = np.ones(vals.hamiltonian.shape, dtype=bool)  # each junction once: a slab's end
+        keep[:, 0] = batch.first + np.arange(len(batch)) == 0
+        t = (batch.t0[:, None] + batch.dt[:, None] * vals.s)[keep]
         x, v = vals.x[keep], vals.v[keep]
         if self.flow is not None:
             tic = time.perf_counter()
@@ -73,15 +127,23 @@ class Accumulator:
             self.err_x, self.err_v = max(self.err_x, ex.max()), max(self.err_v, ev.max())
             self.final_err = (float(ex[-1]), float(ev[-1]))
         self.t.append(t), self.x.append(x), self.v.append(v)
-        est_x, est_v = slab.estimate.reported(keep)
-        self.est_rows.append(np.maximum(est_x, est_v))
-        self.est_x, self.est_v = max(self.est_x, est_x.max()), max(self.est_v, est_v.max())
-        self.est_final = (float(est_x[-1]), float(est_v[-1]))
-        self.estimates.append(slab.estimate.record())
+        est_x, est_v = batch.reported()
+        self.est_rows.append(np.maximum(est_x, est_v)[keep])
+        self.est_x, self.est_v = max(self.est_x, est_x[keep].max()), max(self.est_v,
+                                                                         est_v[keep].max())
+        self.est_final = (float(est_x[-1, -1]), float(est_v[-1, -1]))
+        local = np.abs(batch.local).reshape(len(batch), -1).max(axis=1, initial=0.0)
+        glob = np.maximum(est_x.max(axis=1), est_v.max(axis=1))
+        self.estimates += [{"t0": float(a), "dt": float(b), "local": float(c), "global": float(d),
+                            "local_weighted": float(e), "global_weighted": float(f)}
+                           for a, b, c, d, e, f in zip(batch.t0, batch.dt, local, glob,
+                                                       batch.local_weighted,
+                                                       batch.global_weighted)]
         h = vals.hamiltonian
-        scale = max(np.abs(h).max(), np.finfo(float).tiny)
-        self.ham.append({"min": float(h.min()), "max": float(h.max()),
-                         "drift": float((h.max() - h.min()) / scale)})
+        low, high = h.min(axis=1), h.max(axis=1)
+        scale = np.maximum(np.abs(h).max(axis=1), np.finfo(float).tiny)
+        self.ham += [{"min": float(a), "max": float(b), "drift": float(c)}
+                     for a, b, c in zip(low, high, (high - low) / scale)]
 
     def arrays(self, n: int):
         if not self.t:
@@ -162,6 +224,10 @@ class XdmfSink:
                         raise InputError(f"--out {self.out}: {stale.name} was not written by "
                                          "fem-dual; move it away or choose another directory")
                     stale.unlink()
+
+    def add_batch(self, batch: SlabBatch) -> None:
+        for j in range(len(batch)):
+            self.add(batch.slab(j))
 
     def add(self, slab: AcceptedSlab) -> None:
         tic = time.perf_counter()
@@ -271,6 +337,9 @@ class ProgressSink:
 
     def add(self, slab: AcceptedSlab) -> None:
         self.bar.update(slab.dt)
+
+    def add_batch(self, batch: SlabBatch) -> None:
+        self.bar.update(float(batch.dt.sum()))
 
     def close(self) -> None:
         self.bar.close()

@@ -98,15 +98,30 @@ class ErrorWeights:
     def record(self, x: np.ndarray, v: np.ndarray) -> None:
         self.scale_x, self.scale_v = self._seen(x, v)
 
+    def running(self, x: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """(slabs, 2): `with_motion` of each of consecutive slabs (x, v: (slabs, vertices, n)),
+        each recorded before the next."""
+        seen = []
+        for start, part in ((self.scale_x, x), (self.scale_v, v)):
+            peaks = np.abs(part).reshape(len(part), -1).max(axis=1, initial=0.0)
+            seen.append(np.maximum.accumulate(np.concatenate([[start], peaks]))[1:])
+        sx, sv = seen
+        return np.column_stack([np.where(sx > 0, sx, sv), np.where(sv > 0, sv, sx)])
+
     def norm(self, e: np.ndarray, scales: Tuple[float, float]) -> float:
         """max_i |e_i| / w_i over the rows of e (vertices, 2n); 0 for a zero error."""
+        return float(self.norms(e[None], np.array([scales], dtype=float))[0])
+
+    def norms(self, e: np.ndarray, scales: np.ndarray) -> np.ndarray:
+        """`norm` of many slabs: e (slabs, vertices, 2n), scales (slabs, 2)."""
         n, tol = self.n, self.tol
-        worst = 0.0
-        for part, scale in ((e[:, :n], scales[0]), (e[:, n:], scales[1])):
-            size = float(np.abs(part).max(initial=0.0))
-            if size > 0.0:
-                weight = tol.atol + tol.rtol * scale
-                worst = max(worst, size / weight if weight > 0 else math.inf)
+        worst = np.zeros(len(e))
+        for k, part in enumerate((e[..., :n], e[..., n:])):
+            size = np.abs(part).reshape(len(e), -1).max(axis=1, initial=0.0)
+            weight = tol.atol + tol.rtol * scales[:, k]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ratio = np.where(weight > 0, size / np.where(weight > 0, weight, 1.0), np.inf)
+            worst = np.maximum(worst, np.where(size > 0, ratio, 0.0))
         return worst
 
 

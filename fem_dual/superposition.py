@@ -21,18 +21,19 @@ from fem_dual.mpi import bcast
 from fem_dual.problem import SlabProblem
 from fem_dual.recovery import VertexSampler, VertexValues
 
-__all__ = ["Superposition", "check_slab_map", "stable_or_raise"]
+__all__ = ["Superposition", "check_slab_map", "stable_or_raise", "first", "select", "refused", "checked"]
 
 SPURIOUS_GROWTH = 1e-3  # largest spurious amplification over the run (relative)
 ROUNDOFF_GROWTH = 1e-13  # per slab: below this the eigenvalue solver cannot tell growth
 
 
-def stable_or_raise(comm, scene, end_states: Optional[np.ndarray], dt: float, T: float) -> None:
+def stable_or_raise(comm, scene, end_states: Optional[np.ndarray], dt: float, T: float,
+                    blocks: Optional[np.ndarray] = None) -> None:
     """check_slab_map on rank 0 (which holds the end states), raised on every rank."""
     message = None
     if end_states is not None:
         try:
-            check_slab_map(scene, end_states, dt, T / dt)
+            check_slab_map(scene, end_states, dt, T / dt, blocks)
         except SolveError as exc:
             message = str(exc)
     message = bcast(comm, message)
@@ -40,19 +41,51 @@ def stable_or_raise(comm, scene, end_states: Optional[np.ndarray], dt: float, T:
         raise SolveError(message)
 
 
-def check_slab_map(scene, end_states: np.ndarray, dt: float, slabs: float) -> None:
+def check_slab_map(scene, end_states: np.ndarray, dt: float, slabs: float,
+                   blocks: Optional[np.ndarray] = None) -> None:
     """SolveError when the slab map Phi (columns: end states of the unit start states) grows
     faster than the exact flow, exp(max Re lambda dt), by more than SPURIOUS_GROWTH over the
     run: modes the slabs do not resolve are amplified (the dual slab map is stable only up to
-    some tens of radians of the fastest mode per cell), and noise would grow without bound."""
-    rho = float(np.abs(np.linalg.eigvals(end_states)).max())
-    sigma = float(scene.spectrum[0].real.max())
+    some tens of radians of the fastest mode per cell), and noise would grow without bound.
+    `blocks` (n,) labels components that only couple within their block (modal coordinates):
+    the eigenvalues are then those of the blocks, far cheaper than of the whole map."""
+    if blocks is None:
+        rho = float(np.abs(np.linalg.eigvals(end_states)).max())
+        sigma = float(scene.spectrum[0].real.max())
+    else:
+        n, A = len(blocks), scene.first_order_matrix()
+        rho, sigma = 0.0, -np.inf
+        for label in np.unique(blocks):
+            both = np.concatenate([np.flatnonzero(blocks == label)] * 2)
+            both[len(both) // 2:] += n
+            cut = np.ix_(both, both)
+            rho = max(rho, float(np.abs(np.linalg.eigvals(end_states[cut])).max()))
+            sigma = max(sigma, float(np.linalg.eigvals(A[cut]).real.max()))
     excess = np.log(max(rho, 1e-300)) - sigma * dt
     # an excess at round-off (a unit spectral radius computed as 1 + 1e-15) is no growth
     if excess > ROUNDOFF_GROWTH and excess * max(slabs, 1.0) > np.log1p(SPURIOUS_GROWTH):
         raise SolveError(f"the slab map amplifies modes the slabs do not resolve (spectral "
                          f"radius {rho:.6g}, exact {np.exp(sigma * dt):.6g} per slab); use more "
                          "slabs or cells per slab")
+
+
+def refused(bases: dict, dt: float) -> bool:
+    """Whether the basis of slabs of length dt is at hand; raises the SolveError of its slab
+    map's check again (every slab of that length is refused, not only the first)."""
+    if dt not in bases:
+        return False
+    if isinstance(bases[dt], SolveError):
+        raise SolveError(str(bases[dt]))
+    return True
+
+
+def checked(bases: dict, dt: float, check) -> None:
+    """Run the slab map's check of a new basis; a failure stays recorded for `refused`."""
+    try:
+        check()
+    except SolveError as exc:
+        bases[dt] = exc
+        raise
 
 
 class Superposition:
@@ -101,22 +134,59 @@ class Superposition:
         linear = np.stack(rows) if rows[0] is not None else None
         return linear, quad
 
-    def __call__(self, x0: np.ndarray, v0: np.ndarray, dt: float) -> Optional[VertexValues]:
-        """Vertex values of the slab of length dt from (x0, v0) on rank 0 (None elsewhere).
-        Collective the first time a slab length is seen (its basis is solved then)."""
-        if dt not in self._bases:
-            self._bases[dt] = self._basis(dt)
-            linear = self._bases[dt][0]
-            ends = None
-            if linear is not None:
-                values = [self.sampler.average(rows) for rows in linear]
-                ends = np.array([np.concatenate([e.x[-1], e.v[-1]]) for e in values]).T
-            stable_or_raise(self.problem.comm, self.problem.scene, ends, dt, self.T)
+    def ensure(self, dt: float) -> None:
+        """Solve the basis of slabs of length dt unless it is at hand, and check its slab map.
+        Collective."""
+        if refused(self._bases, dt):
+            return
+        self._bases[dt] = self._basis(dt)
+        linear = self._bases[dt][0]
+        ends = None
+        if linear is not None:
+            values = [self.sampler.average(rows) for rows in linear]
+            ends = np.array([np.concatenate([e.x[-1], e.v[-1]]) for e in values]).T
+        checked(self._bases, dt, lambda: stable_or_raise(self.problem.comm, self.problem.scene,
+                                                         ends, dt, self.T))
+
+    def batch(self, Z: np.ndarray, dt: float, fields: bool = True,
+              last: bool = False) -> Optional[VertexValues]:
+        """Vertex values of the slabs of length dt from the start states Z (slabs, 2n), with a
+        leading slab axis, on rank 0 (None elsewhere); without `fields` only x and v (H_d
+        zero, no dual fields); with `last` only at the slab's end. Collective the first time
+        a slab length is seen (its basis is solved then)."""
+        self.ensure(dt)
         linear, quad = self._bases[dt]
         if linear is None:
             return None
-        z = np.concatenate([x0, v0])
-        rows = np.tensordot(z, linear, axes=1)
-        rows[:, 0] = linear[0][:, 0]  # s is not linear in z
-        rows[:, 1 + 2 * self.problem.n] = np.einsum("rij,i,j->r", quad, z, z)
-        return self.sampler.average(rows)
+        rows = np.tensordot(Z, linear, axes=1)
+        rows[..., 0] = linear[0][:, 0]  # s is not linear in z
+        h = 1 + 2 * self.problem.n
+        rows[..., h] = np.einsum("rij,ki,kj->kr", quad, Z, Z) if fields else 0.0
+        return select(self.sampler.average(rows), fields, last)
+
+    def __call__(self, x0: np.ndarray, v0: np.ndarray, dt: float) -> Optional[VertexValues]:
+        """Vertex values of the slab of length dt from (x0, v0) on rank 0 (None elsewhere).
+        Collective the first time a slab length is seen (its basis is solved then)."""
+        return first(self.batch(np.concatenate([x0, v0])[None], dt))
+
+
+def select(values: VertexValues, fields: bool, last: bool) -> VertexValues:
+    """Without `fields` no dual fields; with `last` the end vertex only."""
+    if not fields:
+        values.xi = values.eta = None
+    if last:
+        cut = slice(-1, None)
+        values = VertexValues(values.s[cut], values.x[:, cut], values.v[:, cut],
+                              values.hamiltonian[:, cut],
+                              None if values.xi is None else values.xi[:, cut],
+                              None if values.eta is None else values.eta[:, cut])
+    return values
+
+
+def first(values: Optional[VertexValues]) -> Optional[VertexValues]:
+    """The first slab of batched vertex values (None stays None)."""
+    if values is None:
+        return None
+    return VertexValues(values.s, values.x[0], values.v[0], values.hamiltonian[0],
+                        None if values.xi is None else values.xi[0],
+                        None if values.eta is None else values.eta[0])

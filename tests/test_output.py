@@ -20,7 +20,10 @@ from fem_dual.errors import SolveError
 from fem_dual.output import XdmfSeries, read_series
 
 FEM_DUAL = str(Path(sys.executable).with_name("fem-dual"))
-LONG = ["run", "ziegler", "--T", "40000", "--slabs", "20000", "--cells", "16", "--degree", "5"]
+# slab by slab (no superposition): long enough to be signalled while it runs (in chunks of
+# slab maps the whole run takes a second)
+LONG = ["run", "ziegler", "--T", "40000", "--slabs", "20000", "--cells", "16", "--degree", "5",
+        "--superpose", "no"]
 
 
 def _rows_of(path: Path):
@@ -131,7 +134,8 @@ def test_sigusr1_to_mpirun_stops_every_rank_after_a_slab(tmp_path):
 
 @pytest.mark.serial
 def test_resume_ends_where_an_uninterrupted_run_ends(tmp_path):
-    argv = ["run", "ziegler", "--T", "20000", "--slabs", "10000", "--cells", "16", "--degree", "5"]
+    argv = ["run", "ziegler", "--T", "20000", "--slabs", "10000", "--cells", "16", "--degree", "5",
+            "--superpose", "no"]
     whole = subprocess.run([FEM_DUAL, *argv, "--out", str(tmp_path / "a"), "--json"],
                            capture_output=True, text=True, check=True)
     proc = _start(argv, tmp_path / "b")
