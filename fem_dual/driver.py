@@ -310,6 +310,13 @@ class Simulation:
             values.xi = values.eta = None
         return values if self.modal is None else self.modal.back(values)
 
+    def share_bases(self, dt: float) -> None:
+        """Give every rank the superposition bases of slabs of length dt (of the answer and
+        its companion), which rank 0 holds, so that each can compute a share of the slabs.
+        Collective."""
+        for sim in (self, self.companion):
+            sim.superposition.share(dt)
+
     def slab_maps(self, dt: float) -> Tuple[Optional[np.ndarray], Optional[np.ndarray]]:
         """(Phi, L) of slabs of length dt (rank 0; None elsewhere): the slab map, z_end =
         Phi z0, and the estimated local error at the slab's end, L z0 = ESTIMATE_SAFETY x
@@ -608,18 +615,15 @@ CHUNK_BYTES = 32 * 2**20  # working arrays of one chunk of slabs solved at once
 CHUNK_SLABS = 4096  # at most this many (a signal is answered after a chunk)
 
 
-def _chunk_on_root(sim: Simulation, config: RunConfig, state: _LoopState,
-                   schedule: SlabSchedule, weights: ErrorWeights, bound: Optional[GrowthBound],
-                   count: int) -> Tuple[List[float], np.ndarray, np.ndarray, Optional[SlabBatch]]:
-    """Rank 0's part of `_batch_step`: the next `count` slabs of the current length from their
-    slab maps, judged as `_judge` does. Returns the step factors of the accepted slabs, the
-    state (z, d) after them and the accepted slabs (None: none)."""
-    t0, dt = schedule.current()
-    n = sim.scene.n
+def _recurrence(sim: Simulation, state: _LoopState, dt: float,
+                count: int) -> Tuple[np.ndarray, np.ndarray, Optional[np.ndarray]]:
+    """Rank 0: the start states Z and propagated errors D (count + 1, 2n) of the next `count`
+    slabs of length dt, slab by slab (as a resumed run repeats them), and the part of each
+    start state the zero base damps (`Simulation.unresolved`)."""
     phi, lend = sim.slab_maps(dt)
-    Z = np.empty((count + 1, 2 * n))
+    Z = np.empty((count + 1, len(state.z)))
     Z[0] = state.z
-    for j in range(count):  # slab by slab, as a resumed run repeats it
+    for j in range(count):
         Z[j + 1] = phi @ Z[j]
     lost = sim.unresolved(Z[:-1], dt)
     carried = Z[:-1] @ lend.T + (0.0 if lost is None else lost)
@@ -627,11 +631,42 @@ def _chunk_on_root(sim: Simulation, config: RunConfig, state: _LoopState,
     D[0] = state.d
     for j in range(count):
         D[j + 1] = carried[j] + phi @ D[j]
-    vals = sim.solve_batch(Z[:-1], dt, duals=config.out is not None)
+    return Z, D, lost
+
+
+def _vertex_part(sim: Simulation, Z: np.ndarray, D: np.ndarray, dt: float,
+                 duals: bool) -> Tuple[VertexValues, VertexValues, np.ndarray]:
+    """Any rank: the vertex values of the slabs from Z[:-1] (the answer, its companion) and the
+    change psi of the answer's from the errors D[:-1], the slabs' ends set to Z[1:]."""
+    n = Z.shape[1] // 2
+    vals = sim.solve_batch(Z[:-1], dt, duals=duals)
     vals.x[:, -1], vals.v[:, -1] = Z[1:, :n], Z[1:, n:]  # each slab ends where the next starts
     companion = sim.companion.solve_batch(Z[:-1], dt, fields=False)
     moved = sim.solve_batch(D[:-1], dt, fields=False)
-    psi = np.concatenate([moved.x, moved.v], axis=-1)
+    return vals, companion, np.concatenate([moved.x, moved.v], axis=-1)
+
+
+def _join(parts: List[Tuple[VertexValues, VertexValues, np.ndarray]]):
+    """The ranks' parts of `_vertex_part` as one, in rank order."""
+    def values(items: List[VertexValues]) -> VertexValues:
+        cat = (lambda name: None if getattr(items[0], name) is None else
+               np.concatenate([getattr(i, name) for i in items]))
+        return VertexValues(items[0].s, cat("x"), cat("v"), cat("hamiltonian"), cat("xi"),
+                            cat("eta"))
+    parts = [p for p in parts if len(p[2])]
+    return (values([p[0] for p in parts]), values([p[1] for p in parts]),
+            np.concatenate([p[2] for p in parts]))
+
+
+def _judge_chunk(config: RunConfig, state: _LoopState, schedule: SlabSchedule,
+                 weights: ErrorWeights, bound: Optional[GrowthBound], Z: np.ndarray,
+                 D: np.ndarray, lost: Optional[np.ndarray], vals: VertexValues,
+                 companion: VertexValues,
+                 psi: np.ndarray) -> Tuple[List[float], np.ndarray, np.ndarray, Optional[SlabBatch]]:
+    """Rank 0: the chunk's slabs judged as `_judge` does. Returns the step factors of the
+    accepted slabs, the state (z, d) after them and the accepted slabs (None: none)."""
+    count = len(Z) - 1
+    t0, dt = schedule.current()
     est = _estimates(vals, companion, None, psi, lost, weights, dt, config.T)
     est.glob[:, -1] = D[1:]
     t0s = (schedule.pos + schedule.length * np.arange(count)) * schedule.T / schedule.total
@@ -662,6 +697,38 @@ def _chunk_on_root(sim: Simulation, config: RunConfig, state: _LoopState,
         batch.schedule[-1, 1] = trial.length
         weights.scale_x, weights.scale_v = est.scales[done - 1]
     return factors, Z[done], D[done], batch
+
+
+def _chunk(sim: Simulation, config: RunConfig, state: _LoopState, schedule: SlabSchedule,
+           weights: Optional[ErrorWeights], bound: Optional[GrowthBound],
+           count: int) -> Tuple[Optional[tuple], Optional[str]]:
+    """The next `count` slabs of the current length (see `_batch_step`): rank 0 propagates the
+    start states, every rank computes the vertex values of its share of the slabs (the array
+    products, split by slabs), rank 0 gathers and judges them. (outcome of `_judge_chunk` on
+    rank 0, None elsewhere; why it failed on any rank, the same on every rank). Collective."""
+    comm, dt = sim.comm, schedule.current()[1]
+    with np.errstate(all="ignore"):  # a blow-up is judged (not finite), not warned about
+        states, problem = _on_root(comm, lambda: _recurrence(sim, state, dt, count))
+        problem = bcast(comm, problem)
+        if problem:
+            return None, problem
+        Z, D, lost = bcast(comm, states)
+        cuts = np.linspace(0, count, comm.size + 1).round().astype(int)
+        lo, hi = cuts[comm.rank], cuts[comm.rank + 1]
+        try:
+            part, mine = _vertex_part(sim, Z[lo:hi + 1], D[lo:hi + 1], dt,
+                                      config.out is not None), None
+        except Exception as exc:  # noqa: BLE001 -- shared, then raised on every rank
+            part, mine = None, _one_line(exc)
+        parts = comm.gather((part, mine), root=0) if comm.size > 1 else [(part, mine)]
+        outcome, problem = None, None
+        if comm.rank == 0:
+            problem = next((p for _, p in parts if p), None)
+            if problem is None:
+                outcome, problem = _on_root(comm, lambda: _judge_chunk(
+                    config, state, schedule, weights, bound, Z, D, lost,
+                    *_join([q for q, _ in parts])))
+        return outcome, bcast(comm, problem)
 
 
 def _slice(values: VertexValues, count: int) -> VertexValues:
@@ -698,15 +765,12 @@ def _batch_step(sim: Simulation, config: RunConfig, state: _LoopState, schedule:
         sim.slab_maps(dt)  # collective: the bases and the check of their slab map
     except SolveError:  # the slab loop retries shorter
         return 0, None
-    with np.errstate(all="ignore"):  # a blow-up is judged (not finite), not warned about
-        outcome, problem = _on_root(comm, lambda: _chunk_on_root(
-            sim, config, state, schedule, weights, bound, count))
+    sim.share_bases(dt)  # collective: every rank computes its share of the slabs
+    outcome, problem = _chunk(sim, config, state, schedule, weights, bound, count)
     root = comm.rank == 0
-    shared = bcast(comm, ((None, None, None, problem) if problem else (*outcome[:3], None))
-                   if root else None)
-    factors, z, d, problem = shared
     if problem:
         return 0, SolveError(f"slab {state.k} (t = {t0:g}): {problem}", slab=state.k)
+    factors, z, d = bcast(comm, outcome[:3] if root else None)
     for factor in factors:
         schedule.accept(factor)
     k = state.k + len(factors) - 1

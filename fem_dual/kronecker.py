@@ -36,7 +36,7 @@ from scipy.sparse import csgraph
 from fem_dual.errors import SolveError
 from fem_dual.recovery import VertexValues, times_last
 from fem_dual.solvers import check_true_residual
-from fem_dual.superposition import checked, first, refused, select, stable_or_raise
+from fem_dual.superposition import checked, first, refused, select, share, stable_or_raise
 
 __all__ = ["TimeMatrices", "KroneckerProblem", "KroneckerSolver", "KroneckerSampler",
            "KroneckerSuperposition", "KRONECKER_DEFAULTS"]
@@ -123,6 +123,7 @@ class KroneckerProblem:
                   "KAiKt": K @ Ai @ K.T, "DBi": D @ Bi, "DBiDt": D @ Bi @ D.T,
                   "DBiM": D @ Bi @ M, "MBi": M @ Bi, "MBiDt": M @ Bi @ D.T,
                   "MBiM": M @ Bi @ M}
+        self.transposed = {"K": np.ascontiguousarray(K.T), "D": np.ascontiguousarray(D.T)}
         self._mass = None if np.array_equal(M, np.eye(self.n)) else sla.cho_factor(M)
         # right factors of the residual's products, for all columns and for this rank's own
         self._right = {name: (_RightFactor(value.T, slice(None)), _RightFactor(value.T, self.mine))
@@ -434,8 +435,8 @@ class KroneckerSampler:
         if hamiltonian:
             dx, dv = x - xbar, v - vbar
             ham = (np.einsum("...j,...j->...", xi, v)
-                   - np.einsum("...j,...j->...", eta, times_last(x, c["K"].T))
-                   - np.einsum("...j,...j->...", eta, times_last(v, c["D"].T))
+                   - np.einsum("...j,...j->...", eta, times_last(x, self.p.transposed["K"]))
+                   - np.einsum("...j,...j->...", eta, times_last(v, self.p.transposed["D"]))
                    + 0.5 * np.einsum("...j,...j->...", dx, times_last(dx, c["A"]))
                    + 0.5 * np.einsum("...j,...j->...", dv, times_last(dv, c["B"])))
         else:
@@ -490,6 +491,7 @@ class KroneckerSuperposition:
         self.problem, self.solver, self.sampler = problem, solver, sampler
         self.T = T
         self._bases: Dict[float, Optional[Tuple[np.ndarray, Optional[np.ndarray]]]] = {}
+        self._shared: set = set()
         self.basis_solves = 0
         n = problem.n
         self.blocks = decoupled_blocks(problem.c)
@@ -498,6 +500,10 @@ class KroneckerSuperposition:
             self.starts, self.gathers = starts, gathers
         else:  # coupled: the unit start states, a dense basis
             self.starts, self.gathers = np.eye(2 * n), None
+
+    def share(self, dt: float) -> None:
+        """The basis of slabs of length dt on every rank. Collective."""
+        share(self.problem.comm, self._bases, self._shared, dt)
 
     @staticmethod
     def solves_per_basis(problem: KroneckerProblem) -> int:

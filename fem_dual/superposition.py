@@ -21,7 +21,8 @@ from fem_dual.mpi import bcast
 from fem_dual.problem import SlabProblem
 from fem_dual.recovery import VertexSampler, VertexValues
 
-__all__ = ["Superposition", "check_slab_map", "stable_or_raise", "first", "select", "refused", "checked"]
+__all__ = ["Superposition", "check_slab_map", "stable_or_raise", "first", "select", "refused", "checked",
+           "share"]
 
 SPURIOUS_GROWTH = 1e-3  # largest spurious amplification over the run (relative)
 ROUNDOFF_GROWTH = 1e-13  # per slab: below this the eigenvalue solver cannot tell growth
@@ -69,6 +70,13 @@ def check_slab_map(scene, end_states: np.ndarray, dt: float, slabs: float,
                          "slabs or cells per slab")
 
 
+def share(comm, bases: dict, shared: set, dt: float) -> None:
+    """Rank 0's basis of slabs of length dt on every rank (once). Collective."""
+    if comm.size > 1 and dt not in shared:
+        bases[dt] = bcast(comm, bases[dt])
+        shared.add(dt)
+
+
 def refused(bases: dict, dt: float) -> bool:
     """Whether the basis of slabs of length dt is at hand; raises the SolveError of its slab
     map's check again (every slab of that length is refused, not only the first)."""
@@ -101,7 +109,13 @@ class Superposition:
         self.problem, self.solver, self.sampler = problem, solver, sampler
         self.T = T  # the run's horizon, for the stability check of the slab map
         self._bases: Dict[float, Tuple[Optional[np.ndarray], Optional[np.ndarray]]] = {}
+        self._shared: set = set()
         self.basis_solves = 0
+
+    def share(self, dt: float) -> None:
+        """The basis of slabs of length dt on every rank (the values are then computed
+        wherever asked, not only on rank 0). Collective."""
+        share(self.problem.comm, self._bases, self._shared, dt)
 
     def _basis(self, dt: float):
         """Rows of the 2n unit start states (2n, rows, columns) and the Hamiltonian's quadratic

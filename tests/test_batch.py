@@ -35,7 +35,7 @@ def test_batched_slabs_agree_with_solving_every_slab(scene, params, monkeypatch)
     assert _close(batched.x, one_by_one.x, 1e-13) and _close(batched.v, one_by_one.v, 1e-13)
     # the estimate is a difference of two close solutions: its last digits are round-off (and,
     # with CG, the solver's tolerance), differently cancelled
-    assert batched.error_estimate == pytest.approx(one_by_one.error_estimate, rel=1e-5)
+    assert batched.error_estimate == pytest.approx(one_by_one.error_estimate, rel=1e-4)
     assert batched.estimate_at_t == pytest.approx(one_by_one.estimate_at_t, rel=1e-3,
                                                   abs=1e-6 * batched.error_estimate)
     drift = [np.array([h["drift"] for h in r.hamiltonian["per_slab"]])
