@@ -31,10 +31,11 @@ from fem_dual.driver import Simulation
 from fem_dual.errors import InputError, SolveError
 from fem_dual.scenes import Scene
 
-__all__ = ["COLUMNS", "bench", "write_csv", "read_csv", "plot", "table", "ratio_at"]
+__all__ = ["COLUMNS", "bench", "write_csv", "read_csv", "plot", "table", "ratio_at",
+           "ratio_same_times"]
 
 COLUMNS = ["method", "degree", "cells", "slabs", "rtol", "max_error", "final_error", "wall_s",
-           "compile_s", "samples", "estimate", "slabs_solved"]
+           "compile_s", "samples", "estimate", "slabs_solved", "expm_wall_s"]
 ADAPTIVE_CELLS = 4  # cells per slab of the fem-dual --rtol rows
 TOLERANCES = {"RK45": [1e-4, 1e-6, 1e-8, 1e-10], "DOP853": [1e-6, 1e-8, 1e-10, 1e-12],
               "DOP853-f": [1e-6, 1e-8, 1e-10, 1e-12], "Radau": [1e-4, 1e-6, 1e-8],
@@ -63,13 +64,25 @@ def _fem_row(sim: Simulation, config: RunConfig, repeats: int, compile_s: float,
     flow = config.scene.reference(config.x0, config.v0)
     x_ref, v_ref = flow(result.t)
     err = _state_error(result.x, result.v, x_ref, v_ref)
+    expm_wall = None
+    if config.scene.linear:  # the exact propagator at this row's own output times
+        A, z0 = config.scene.first_order_matrix(), np.concatenate([config.x0, config.v0])
+        expm_wall = float(np.median([_timed(lambda: _expm_propagator(A, z0, result.t))
+                                     for _ in range(repeats)]))
     return {"method": "fem-dual" if config.rtol is None else "fem-dual-rtol",
             "degree": config.degree, "cells": config.cells,
             "slabs": config.slabs if config.rtol is None else len(result.slab_lengths),
             "slabs_solved": len(result.slab_lengths),
             "rtol": config.rtol, "max_error": float(err.max()), "final_error": float(err[-1]),
             "wall_s": float(np.median(walls)), "compile_s": compile_s,
-            "samples": len(result.t), "estimate": result.error_estimate, "_t": result.t}
+            "samples": len(result.t), "estimate": result.error_estimate, "_t": result.t,
+            "expm_wall_s": expm_wall}
+
+
+def _timed(action) -> float:
+    tic = time.perf_counter()
+    action()
+    return time.perf_counter() - tic
 
 
 def _fem_rows(base: RunConfig, degrees: Sequence[int], cells: Sequence[int],
@@ -159,7 +172,7 @@ def _ode_rows(scene: Scene, T: float, x0: np.ndarray, v0: np.ndarray, t: np.ndar
         rows.append({"method": "expm", "degree": None, "cells": None, "slabs": None,
                      "rtol": None, "max_error": float(err.max()), "final_error": float(err[-1]),
                      "wall_s": float(np.median(walls)), "compile_s": 0.0, "samples": len(t),
-                     "estimate": None, "slabs_solved": None})
+                     "estimate": None, "slabs_solved": None, "expm_wall_s": None})
     for method, tolerances in TOLERANCES.items():
         for tol in sorted(set(tolerances) | set(rtols)):
             walls, y = [], None
@@ -184,7 +197,7 @@ def _ode_rows(scene: Scene, T: float, x0: np.ndarray, v0: np.ndarray, t: np.ndar
             rows.append({"method": method, "degree": None, "cells": None, "slabs": None,
                          "rtol": tol, "max_error": float(err.max()), "final_error": float(err[-1]),
                          "wall_s": float(np.median(walls)), "compile_s": 0.0, "samples": len(t),
-                         "estimate": None, "slabs_solved": None})
+                         "estimate": None, "slabs_solved": None, "expm_wall_s": None})
     return rows
 
 
@@ -282,6 +295,18 @@ def table(rows: List[Dict]) -> str:
                      f"{f(r['slabs'], '6d')} {f(r['rtol'], '8.0e')} {r['max_error']:10.2e} "
                      f"{r['final_error']:11.2e} {r['wall_s']:9.4f}")
     return "\n".join(lines)
+
+
+def ratio_same_times(rows: List[Dict], target: float) -> Optional[Dict]:
+    """The fastest fem-dual row (fixed slabs or --rtol) reaching max_error <= target, with its
+    wall time over the matrix-exponential propagator's at the same output times (linear scenes;
+    None if no row reaches it)."""
+    reached = [r for r in rows if r["method"] in ("fem-dual", "fem-dual-rtol")
+               and r["max_error"] <= target and r.get("expm_wall_s")]
+    if not reached:
+        return None
+    best = min(reached, key=lambda r: r["wall_s"])
+    return {**best, "ratio": best["wall_s"] / best["expm_wall_s"]}
 
 
 def ratio_at(rows: List[Dict], target: float, peer: str = "DOP853") -> Optional[float]:

@@ -360,6 +360,15 @@ def _bench(args, params, comm: MPI.Comm) -> int:
                     text = "not reached by both" if ratio is None else f"{ratio:.2f}"
                     print(f"wall-time ratio fem-dual / {peer} at max error <= {target:g}: "
                           f"{text}")
+            for target in (1e-4, 1e-6, 1e-8, 1e-10):
+                best = bm.ratio_same_times(rows, target)
+                if best is not None:
+                    what = (f"{best['slabs']} slabs" if best["method"] == "fem-dual"
+                            else f"rtol {best['rtol']:g}")
+                    print(f"wall-time ratio fem-dual / expm at the same output times, max error "
+                          f"<= {target:g}: {best['ratio']:.2f} (p={best['degree']}, {what} x "
+                          f"{best['cells']} cells, {best['samples']} times, "
+                          f"{best['wall_s'] * 1e3:.3g} ms vs {best['expm_wall_s'] * 1e3:.3g} ms)")
             print(f"wrote {out / 'bench.csv'}, {out / 'bench.png'}")
     return 0
 

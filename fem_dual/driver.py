@@ -38,7 +38,7 @@ from fem_dual.recovery import VertexSampler, VertexValues
 from fem_dual.solvers import LinearSlabSolver, solver_prefix
 from fem_dual.superposition import Superposition
 from fem_dual.stepper import (ESTIMATE_SAFETY, ROUNDOFF_REL, ErrorWeights, SlabEstimate,
-                              initial_fraction, motion_rate, step_factor)
+                              initial_fraction, motion_rate, step_factor, step_factors)
 from meshes import SlabSchedule
 
 __all__ = ["RunResult", "Simulation", "AcceptedSlab", "run"]
@@ -279,8 +279,12 @@ class Simulation:
         self.tangent_solves = 0
         self._maps = {}
         if self.uses_superposition(config):
-            kind = KroneckerSuperposition if self.kronecker else Superposition
-            self.superposition = kind(self.problem, self.solver, self.sampler, config.T)
+            if self.kronecker:  # H_d from the fields
+                self.superposition = KroneckerSuperposition(self.problem, self.solver,
+                                                            self.sampler, config.T)
+            else:  # H_d by polarisation, which the companion (x, v only) does without
+                self.superposition = Superposition(self.problem, self.solver, self.sampler,
+                                                   config.T, self.sampler.with_dual)
 
     def solve_slab(self, z0: np.ndarray, t0: float, dt: float) -> Optional[VertexValues]:
         """The vertex values of the slab [t0, t0 + dt] from z0 = (x0, v0), on rank 0 (None
@@ -675,19 +679,19 @@ def _judge_chunk(config: RunConfig, state: _LoopState, schedule: SlabSchedule,
           & (est.err_local <= 1.0) & (est.err_global <= weights.tol.refuse_factor))
     if bound is not None:
         ok &= bound.allows(t0s + dt, vals)
+    # the accepted run ends before a slab that fails, or after one whose step factor is below
+    # 1: after it the schedule shortens the slabs (at the nominal length, a factor of 1 or
+    # more keeps it)
     order = 2 * config.degree
+    done = int(np.argmin(ok)) if not ok.all() else count
+    shrinks = np.flatnonzero(step_factors(est.err_local[:done], order) < 1.0)
+    if len(shrinks):
+        done = int(shrinks[0]) + 1
     trial = copy.copy(schedule)
-    factors: List[float] = []
-    for j in range(count):  # the accepted run ends where a slab fails or the length changes
-        if not ok[j]:
-            break
-        factors.append(step_factor(float(est.err_local[j]), order))
-        trial.accept(factors[-1])
-        if trial.length != schedule.length:
-            break
-    done = len(factors)
     batch = None
     if done:
+        trial.pos += trial.length * (done - 1)
+        trial.accept(step_factor(float(est.err_local[done - 1]), order))
         positions = schedule.pos + schedule.length * np.arange(1, done + 1)
         batch = SlabBatch(state.k, t0s[:done], np.full(done, dt), _slice(vals, done),
                           est.local[:done], est.glob[:done], est.err_local[:done],
@@ -696,7 +700,7 @@ def _judge_chunk(config: RunConfig, state: _LoopState, schedule: SlabSchedule,
                           est.scales[:done])
         batch.schedule[-1, 1] = trial.length
         weights.scale_x, weights.scale_v = est.scales[done - 1]
-    return factors, Z[done], D[done], batch
+    return (done, trial.pos, trial.length), Z[done], D[done], batch
 
 
 def _chunk(sim: Simulation, config: RunConfig, state: _LoopState, schedule: SlabSchedule,
@@ -770,13 +774,11 @@ def _batch_step(sim: Simulation, config: RunConfig, state: _LoopState, schedule:
     root = comm.rank == 0
     if problem:
         return 0, SolveError(f"slab {state.k} (t = {t0:g}): {problem}", slab=state.k)
-    factors, z, d = bcast(comm, outcome[:3] if root else None)
-    for factor in factors:
-        schedule.accept(factor)
-    k = state.k + len(factors) - 1
-    state.lengths += [dt] * len(factors)
-    state.k += len(factors)
-    if not factors:
+    (done, schedule.pos, schedule.length), z, d = bcast(comm, outcome[:3] if root else None)
+    k = state.k + done - 1
+    state.lengths += [dt] * done
+    state.k += done
+    if not done:
         return 0, None
     state.z, state.d = z, d
     batch = outcome[3] if root else None
@@ -784,9 +786,9 @@ def _batch_step(sim: Simulation, config: RunConfig, state: _LoopState, schedule:
     problem = bcast(comm, problem if root else None)
     if problem:
         where = f" ({config.out})" if config.out is not None else ""
-        return len(factors), SolveError(f"slab {k} (t = {t0:g} .. {t0 + len(factors) * dt:g}): "
-                                        f"writing the output failed{where}: {problem}", slab=k)
-    return len(factors), None
+        return done, SolveError(f"slab {k} (t = {t0:g} .. {t0 + done * dt:g}): "
+                                f"writing the output failed{where}: {problem}", slab=k)
+    return done, None
 
 
 def _interruption(comm: MPI.Comm, schedule: SlabSchedule, k: int,

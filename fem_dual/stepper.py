@@ -28,7 +28,7 @@ from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
-__all__ = ["ErrorWeights", "step_factor", "SlabEstimate", "Tolerance", "REFUSE_RELATIVE",
+__all__ = ["ErrorWeights", "step_factor", "step_factors", "SlabEstimate", "Tolerance", "REFUSE_RELATIVE",
            "ACCEPT_GLOBAL", "ESTIMATE_SAFETY", "ROUNDOFF_REL", "initial_fraction",
            "motion_rate", "stalled"]
 
@@ -130,9 +130,14 @@ def step_factor(err: Optional[float], order: int) -> float:
     (err ~ dt^order); a solve that failed (err None) or a non-finite error halves."""
     if err is None or not math.isfinite(err):
         return 0.5 if err is None else MIN_SHRINK
-    if err <= 0.0:
-        return MAX_GROWTH
-    return min(MAX_GROWTH, max(MIN_SHRINK, SAFETY * err ** (-1.0 / order)))
+    return float(step_factors(np.array([err]), order)[0])
+
+
+def step_factors(err: np.ndarray, order: int) -> np.ndarray:
+    """`step_factor` of finite errors, at once."""
+    with np.errstate(divide="ignore"):
+        grown = SAFETY * np.where(err > 0.0, err, 1.0) ** (-1.0 / order)
+    return np.where(err > 0.0, np.clip(grown, MIN_SHRINK, MAX_GROWTH), MAX_GROWTH)
 
 
 @dataclass

@@ -105,9 +105,11 @@ class Superposition:
         sampler: the vertex sampler of the problem.
     """
 
-    def __init__(self, problem: SlabProblem, solver, sampler: VertexSampler, T: float = 0.0):
+    def __init__(self, problem: SlabProblem, solver, sampler: VertexSampler, T: float = 0.0,
+                 hamiltonian: bool = True):
         self.problem, self.solver, self.sampler = problem, solver, sampler
         self.T = T  # the run's horizon, for the stability check of the slab map
+        self.hamiltonian = hamiltonian  # H_d by polarisation (the error companion needs x, v)
         self._bases: Dict[float, Tuple[Optional[np.ndarray], Optional[np.ndarray]]] = {}
         self._shared: set = set()
         self.basis_solves = 0
@@ -136,7 +138,7 @@ class Superposition:
             quad = np.zeros((len(rows[0]), 2 * n, 2 * n))
             for i in range(2 * n):
                 quad[:, i, i] = rows[i][:, h]
-        for i in range(2 * n):
+        for i in range(2 * n if self.hamiltonian else 0):
             for j in range(i + 1, 2 * n):
                 z = unit[i] + unit[j]
                 p.set_slab(z[:n], z[n:], dt)
