@@ -29,8 +29,8 @@ from fem_dual.kronecker import (KroneckerProblem, KroneckerSampler, KroneckerSol
                                 KroneckerSuperposition)
 from fem_dual.mpi import allreduce, bcast, input_on_root
 from fem_dual.output import check_output_dir_on_root
-from fem_dual.sinks import (AcceptedSlab, Accumulator, ProgressSink, Restart, SlabBatch,
-                            XdmfSink)
+from fem_dual.sinks import (AcceptedSlab, Accumulator, PartialBatch, ProgressSink, Restart,
+                            SlabBatch, XdmfSink)
 from fem_dual import faults
 from fem_dual.newton import NewtonSlabSolver
 from fem_dual.problem import SlabProblem
@@ -594,6 +594,11 @@ class _LoopState:
         self.d = np.zeros_like(self.z)  # estimated global error of the state at the slab start
         self.lengths: List[float] = []
         self.batched = 0  # slabs taken in chunks from their slab maps (_batch_step)
+        self.chunk = FIRST_CHUNK  # slabs of the next chunk (before the limits of _batch_step)
+        # whether the slab lengths have settled: fixed slabs always, --rtol once the last step
+        # factor kept the length (while the controller still grows and retries, chunks of one
+        # slab would cost more than the slab loop)
+        self.settled = config.rtol is None
         self.resumed_from: Optional[Dict[str, float]] = None
 
     def resume(self, comm: MPI.Comm, restart: Optional[Restart], acc: Optional[Accumulator],
@@ -617,6 +622,7 @@ class _LoopState:
 
 CHUNK_BYTES = 32 * 2**20  # working arrays of one chunk of slabs solved at once
 CHUNK_SLABS = 4096  # at most this many (a signal is answered after a chunk)
+FIRST_CHUNK = 8
 
 
 def _recurrence(sim: Simulation, state: _LoopState, dt: float,
@@ -679,14 +685,16 @@ def _judge_chunk(config: RunConfig, state: _LoopState, schedule: SlabSchedule,
           & (est.err_local <= 1.0) & (est.err_global <= weights.tol.refuse_factor))
     if bound is not None:
         ok &= bound.allows(t0s + dt, vals)
-    # the accepted run ends before a slab that fails, or after one whose step factor is below
-    # 1: after it the schedule shortens the slabs (at the nominal length, a factor of 1 or
-    # more keeps it)
+    # the accepted run ends before a slab that fails, or after one whose step factor changes
+    # the length (SlabSchedule.accept: below 1 it shortens, from 2 on it grows, up to the
+    # nominal length)
     order = 2 * config.degree
     done = int(np.argmin(ok)) if not ok.all() else count
-    shrinks = np.flatnonzero(step_factors(est.err_local[:done], order) < 1.0)
-    if len(shrinks):
-        done = int(shrinks[0]) + 1
+    factors, length = step_factors(est.err_local[:done], order), schedule.length
+    changes = np.flatnonzero(((factors < 1.0) & (length > 1))
+                             | ((factors >= 2.0) & (length < schedule.nominal)))
+    if len(changes):
+        done = int(changes[0]) + 1
     trial = copy.copy(schedule)
     batch = None
     if done:
@@ -747,15 +755,14 @@ def _batch_step(sim: Simulation, config: RunConfig, state: _LoopState, schedule:
                 sinks: List[Any], check) -> Tuple[int, Optional[SolveError]]:
     """Solve, judge and record a chunk of equal slabs of a linear scene at once from its slab
     maps (superposition), instead of slab by slab: (slabs accepted, the failure that ends the
-    run or None). Fixed slabs at their nominal length only; it stops before a slab that
-    `_judge` would not accept or after one that changes the length, which the slab loop then
-    takes. Collective."""
+    run or None). Fixed slabs and --rtol alike; it stops before a slab that `_judge` would not
+    accept (the slab loop then takes it) or after one whose step factor changes the length.
+    Collective."""
     comm = sim.comm
-    units = schedule.nominal
     if (sim.superposition is None or sim.companion.superposition is None
-            or config.rtol is not None or schedule.length != units):
+            or not state.settled):
         return 0, None
-    remaining = (schedule.total - schedule.pos) // units
+    remaining = (schedule.total - schedule.pos) // schedule.length
     if remaining < 2:
         return 0, None
     try:
@@ -764,7 +771,7 @@ def _batch_step(sim: Simulation, config: RunConfig, state: _LoopState, schedule:
         return 0, None
     t0, dt = schedule.current()
     per_slab = 8 * (sim.cells + 1) * 14 * sim.scene.n
-    count = int(max(1, min(remaining, CHUNK_SLABS, CHUNK_BYTES // per_slab)))
+    count = int(max(1, min(remaining, state.chunk, CHUNK_SLABS, CHUNK_BYTES // per_slab)))
     try:
         sim.slab_maps(dt)  # collective: the bases and the check of their slab map
     except SolveError:  # the slab loop retries shorter
@@ -775,20 +782,38 @@ def _batch_step(sim: Simulation, config: RunConfig, state: _LoopState, schedule:
     if problem:
         return 0, SolveError(f"slab {state.k} (t = {t0:g}): {problem}", slab=state.k)
     (done, schedule.pos, schedule.length), z, d = bcast(comm, outcome[:3] if root else None)
-    k = state.k + done - 1
-    state.lengths += [dt] * done
-    state.k += done
+    # chunks grow while their slabs are all taken (the length settled), and start small again
+    # after one stopped early (a controller still finding its length wastes little)
+    state.chunk = state.chunk * 4 if done == count else FIRST_CHUNK
+    state.settled = config.rtol is None or (done == count and done > 0)
     if not done:
         return 0, None
-    state.z, state.d = z, d
     batch = outcome[3] if root else None
-    _, problem = _on_root(comm, lambda: [sink.add_batch(batch) for sink in sinks])
-    problem = bcast(comm, problem if root else None)
+    fed, problem = _on_root(comm, lambda: _feed(sinks, batch))
+    taken, problem = bcast(comm, (fed if fed is not None else (done, problem)) if root else None)
+    k = state.k + taken - 1
+    state.lengths += [dt] * taken
+    state.k += taken
     if problem:
         where = f" ({config.out})" if config.out is not None else ""
-        return done, SolveError(f"slab {k} (t = {t0:g} .. {t0 + done * dt:g}): "
-                                f"writing the output failed{where}: {problem}", slab=k)
+        return taken, SolveError(f"slab {k} (t = {t0 + (taken - 1) * dt:g} .. "
+                                 f"{t0 + taken * dt:g}): writing the output failed{where}: "
+                                 f"{problem}", slab=k)
+    state.z, state.d = z, d
     return done, None
+
+
+def _feed(sinks: List[Any], batch: SlabBatch) -> Tuple[int, Optional[str]]:
+    """Give the accepted slabs to the sinks, the writer first: when it fails at a slab, the
+    others take the slabs up to that one, as the slab loop's sinks would have (the slab whose
+    write failed is in the results). (slabs taken, the failure in one line or None)."""
+    taken, problem = len(batch), None
+    for sink in sorted(sinks, key=lambda s: not isinstance(s, XdmfSink)):
+        try:
+            sink.add_batch(batch if taken == len(batch) else batch.head(taken))
+        except PartialBatch as exc:
+            taken, problem = exc.taken + 1, _one_line(exc.cause)
+    return taken, problem
 
 
 def _interruption(comm: MPI.Comm, schedule: SlabSchedule, k: int,
@@ -883,7 +908,9 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool,
             failure = SolveError(f"slab {k} (t = {t0:g} .. {t0 + dt:g}): {reason}{what}"
                                  + ("" if action == "error" else f"; {_advice(config)}"), slab=k)
             break
-        schedule.accept(step_factor(err, order))
+        factor = step_factor(err, order)
+        schedule.accept(factor)
+        state.settled = config.rtol is None or 1.0 <= factor < 2.0
         state.lengths.append(dt)
         state.k += 1
 

