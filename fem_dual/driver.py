@@ -620,8 +620,8 @@ class _LoopState:
         self.resumed_from = {"slab": self.k, "t": t}
 
 
-CHUNK_BYTES = 32 * 2**20  # working arrays of one chunk of slabs solved at once
-CHUNK_SLABS = 4096  # at most this many (a signal is answered after a chunk)
+CHUNK_BYTES = 8 * 2**20  # working arrays of one chunk of slabs solved at once
+CHUNK_SLABS = 1024  # at most this many (a signal is answered after a chunk)
 FIRST_CHUNK = 8
 
 
