@@ -15,10 +15,11 @@ from __future__ import annotations
 import abc
 from collections.abc import Mapping as abc_Mapping
 import dataclasses
+import importlib
 import math
 import numbers
 from types import ModuleType
-from typing import ClassVar, Dict, Mapping, Optional, Tuple
+from typing import Callable, ClassVar, Dict, Mapping, Optional, Tuple
 
 import numpy as np
 
@@ -39,6 +40,31 @@ TINY = float(np.finfo(float).tiny)  # the smallest normal float64: below it, 1/x
 # more than DENSE_BUDGET is refused before anything is allocated: MAX_DOFS = 1448.
 DENSE_BUDGET = 2 * 1024 ** 3  # bytes
 DENSE_WORDS = 128  # n x n float64 matrices a linear run holds at its peak (see above)
+
+
+class LazyForms:
+    """A scene's forms module (UFL), imported when first used: listing the scenes and checking
+    their parameters import no UFL (`fem-dual scenes` answers in a quarter of a second).
+    `build(module)` makes the forms from the module (a user-defined force's implicit map)."""
+
+    def __init__(self, module: str, build: Optional[Callable] = None):
+        self.module, self.build = module, build
+        self._value = None
+
+    def __get__(self, obj, owner):
+        if obj is None:  # dataclasses look at every annotated class attribute: not an import
+            return self
+        if self._value is None:
+            module = importlib.import_module(self.module)
+            self._value = module if self.build is None else self.build(module)
+        return self._value
+
+
+def implicit_forms(module):
+    """forms.implicit's map from a module's force and auxiliary potential."""
+    from forms import implicit
+
+    return implicit.make(module.force, module.aux_potential)
 
 
 def dense_bytes(n: float) -> float:

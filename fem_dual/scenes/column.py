@@ -6,9 +6,9 @@ from typing import ClassVar, Tuple
 
 import numpy as np
 
-import forms.column as column_forms
 from fem_dual.errors import InputError
-from fem_dual.scenes.base import per_link_field, require_positive, require_square, show
+from fem_dual.scenes.base import (LazyForms, per_link_field, require_positive, require_square,
+                                  show)
 from fem_dual.scenes.linear import LinearScene
 
 __all__ = ["Column", "scaled_column_params", "scaled_column", "lowest_mode"]
@@ -20,7 +20,7 @@ class Column(LinearScene):
     link), length l, tip follower load P. links=2, m=2,1 reproduces `ziegler`."""
 
     name: ClassVar[str] = "column"
-    forms: ClassVar = column_forms
+    forms: ClassVar = LazyForms("forms.column")
     default_T: ClassVar[float] = 20.0
     summary: ClassVar[str] = "N-link follower-load column (Ziegler for N = 2, Beck for large N)"
     size_field: ClassVar[str] = "links"  # from 2 to MAX_DOFS (the memory rule of scenes.base)
@@ -57,19 +57,19 @@ class Column(LinearScene):
         super().validate()
 
     def mass_matrix(self) -> np.ndarray:
-        return column_forms.mass_matrix(self._per_link("m"), self.l)
+        return self.forms.mass_matrix(self._per_link("m"), self.l)
 
     def stiffness_matrix(self) -> np.ndarray:
-        return (column_forms.joint_matrix(self._per_link("c"))
-                - column_forms.follower_matrix(self.n, self.l, self.P))
+        return (self.forms.joint_matrix(self._per_link("c"))
+                - self.forms.follower_matrix(self.n, self.l, self.P))
 
     def energy_stiffness(self) -> np.ndarray:
         """The springs alone: positive definite under any load (sym K is not, for long columns
         under a follower load)."""
-        return column_forms.joint_matrix(self._per_link("c"))
+        return self.forms.joint_matrix(self._per_link("c"))
 
     def damping_matrix(self) -> np.ndarray:
-        return column_forms.joint_matrix(self._per_link("d"))
+        return self.forms.joint_matrix(self._per_link("d"))
 
 
 def scaled_column_params(links: int, P: float = 0.0) -> dict:

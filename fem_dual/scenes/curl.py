@@ -11,13 +11,9 @@ from typing import ClassVar, Dict, Optional, Tuple
 
 import numpy as np
 
-import forms.curl2d as curl2d_forms
-import forms.curl2d_lifted as curl2d_lifted_forms
-import forms.curl3d as curl3d_forms
-from fem_dual.reference import IVPFlow
 from fem_dual.errors import InputError
-from fem_dual.scenes.base import Scene, matrix_field, require_positive
-from forms import implicit
+from fem_dual.scenes.base import (LazyForms, Scene, implicit_forms, matrix_field,
+                                  require_positive)
 
 __all__ = ["ForceScene", "Curl3D", "Curl2D", "Curl2DLifted", "Curl3DUFL", "Curl2DUFL"]
 
@@ -53,7 +49,9 @@ class ForceScene(Scene):
         F = self.forms.force(np.asarray(x, dtype=float), c)
         return np.array([F[i]((0.0,)) for i in range(self.n)])
 
-    def reference(self, x0, v0) -> IVPFlow:
+    def reference(self, x0, v0):
+        from fem_dual.reference import IVPFlow
+
         return IVPFlow(lambda x: self.force_numpy(x) / self.m, x0, v0)
 
     def quadrature_degree(self, degree: int) -> int:
@@ -68,7 +66,7 @@ class Curl3D(ForceScene):
 
     name: ClassVar[str] = "curl3d"
     n: ClassVar[int] = 3
-    forms: ClassVar = curl3d_forms
+    forms: ClassVar = LazyForms("forms.curl3d")
     default_T: ClassVar[float] = 2.0
     default_x0: ClassVar[Tuple[float, ...]] = (0.3, 0.2, 0.1)
     default_v0: ClassVar[Tuple[float, ...]] = (0.0, 0.0, 0.0)
@@ -110,7 +108,7 @@ class Curl2D(ForceScene):
 
     name: ClassVar[str] = "curl2d"
     n: ClassVar[int] = 2
-    forms: ClassVar = curl2d_forms
+    forms: ClassVar = LazyForms("forms.curl2d")
     default_T: ClassVar[float] = 2.0
     default_x0: ClassVar[Tuple[float, ...]] = (1.0, 1.0)
     default_v0: ClassVar[Tuple[float, ...]] = (0.0, 0.0)
@@ -128,7 +126,7 @@ class Curl3DUFL(Curl3D):
     """curl3d declared as a user-defined force: implicit DtP path, G derived by UFL."""
 
     name: ClassVar[str] = "curl3d-ufl"
-    forms: ClassVar = implicit.make(curl3d_forms.force, curl3d_forms.aux_potential)
+    forms: ClassVar = LazyForms("forms.curl3d", implicit_forms)
     summary: ClassVar[str] = "curl3d as a user-defined force (G derived by UFL)"
 
 
@@ -137,7 +135,7 @@ class Curl2DUFL(Curl2D):
     """curl2d declared as a user-defined force: G derived by UFL."""
 
     name: ClassVar[str] = "curl2d-ufl"
-    forms: ClassVar = implicit.make(curl2d_forms.force, curl2d_forms.aux_potential)
+    forms: ClassVar = LazyForms("forms.curl2d", implicit_forms)
     summary: ClassVar[str] = "curl2d as a user-defined force (G derived by UFL)"
 
 
@@ -146,5 +144,5 @@ class Curl2DLifted(Curl2D):
     """curl2d by quadratic lifting: explicit augmented DtP map, multipliers lambda, mu."""
 
     name: ClassVar[str] = "curl2d-lifted"
-    forms: ClassVar = curl2d_lifted_forms
+    forms: ClassVar = LazyForms("forms.curl2d_lifted")
     summary: ClassVar[str] = "curl2d by quadratic lifting r = y^2, s = x^2 (remark of section 3.1)"

@@ -10,16 +10,16 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import ClassVar, Dict, Mapping, Optional, Tuple
+from typing import TYPE_CHECKING, ClassVar, Dict, Mapping, Optional, Tuple
 
 import numpy as np
 
 from fem_dual.errors import InputError
-from fem_dual.expression import ForceExpression, check_parameter_names, parse_force
 from fem_dual.scenes.base import parse_number, require_normal, require_positive, show
 from fem_dual.scenes.curl import ForceScene
-from forms import implicit
-from forms.predual import isotropic_aux
+
+if TYPE_CHECKING:  # the parser imports UFL: only when a force is parsed
+    from fem_dual.expression import ForceExpression
 
 __all__ = ["ExpressionForce"]
 
@@ -51,6 +51,8 @@ class ExpressionForce(ForceScene):
             if name in ("M", "Binv"):  # the constants of the forms themselves
                 raise InputError(f"parameter name {name!r} is reserved (the mass matrix and "
                                  "H's inverse weight); use another name")
+        from fem_dual.expression import check_parameter_names, parse_force
+
         expression = parse_force(str(text), values)
         check_parameter_names(values, expression.n)
         unused = sorted(set(values) - set(expression.parameters))
@@ -67,6 +69,8 @@ class ExpressionForce(ForceScene):
 
     @functools.cached_property
     def expression(self) -> ForceExpression:
+        from fem_dual.expression import parse_force
+
         return parse_force(self.F, dict(self.values))
 
     @property
@@ -75,6 +79,9 @@ class ExpressionForce(ForceScene):
 
     @functools.cached_property
     def forms(self):  # type: ignore[override]
+        from forms import implicit
+        from forms.predual import isotropic_aux
+
         return implicit.make(self.expression.ufl, isotropic_aux)
 
     @property

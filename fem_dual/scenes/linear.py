@@ -20,10 +20,8 @@ from typing import ClassVar, Dict, Optional, Tuple
 
 import numpy as np
 
-import forms.linear as linear_forms
-from fem_dual.reference import first_order_matrix, linear_flow
 from fem_dual.errors import InputError
-from fem_dual.scenes.base import (Scene, choice_field, is_spd, matrix_field, require_spd,
+from fem_dual.scenes.base import (LazyForms, Scene, choice_field, is_spd, matrix_field, require_spd,
                                   show)
 
 __all__ = ["LinearScene", "GeneralLinear", "STIFF_SPREAD"]
@@ -43,7 +41,7 @@ class LinearScene(Scene):
     """M q'' + D q' + K q = 0 with the explicit DtP map of forms.linear; one KSP solve per slab."""
 
     linear: ClassVar[bool] = True
-    forms: ClassVar = linear_forms
+    forms: ClassVar = LazyForms("forms.linear")
 
     A: Optional[tuple] = matrix_field("H's position matrix (SPD); default from `weights`")
     B: Optional[tuple] = matrix_field("H's velocity matrix (SPD); default from `weights`")
@@ -131,6 +129,8 @@ class LinearScene(Scene):
                 "A": A, "B": B, "Ainv": np.linalg.inv(A), "Binv": np.linalg.inv(B)}
 
     def first_order_matrix(self) -> np.ndarray:
+        from fem_dual.reference import first_order_matrix
+
         return first_order_matrix(self.mass_matrix(), self.stiffness_matrix(),
                                   self.damping_matrix())
 
@@ -154,6 +154,8 @@ class LinearScene(Scene):
         return float(np.abs(lam[excited]).max()) if excited.any() else 0.0
 
     def reference(self, x0, v0):
+        from fem_dual.reference import linear_flow
+
         return linear_flow(self.mass_matrix(), self.stiffness_matrix(), self.damping_matrix(),
                            x0, v0)
 

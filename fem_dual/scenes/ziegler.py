@@ -6,8 +6,7 @@ from typing import ClassVar, Tuple
 
 import numpy as np
 
-import forms.ziegler as ziegler_forms
-from fem_dual.scenes.base import require_positive, require_square
+from fem_dual.scenes.base import LazyForms, require_positive, require_square
 from fem_dual.scenes.linear import LinearScene
 
 __all__ = ["Ziegler"]
@@ -20,7 +19,7 @@ class Ziegler(LinearScene):
 
     name: ClassVar[str] = "ziegler"
     n: ClassVar[int] = 2
-    forms: ClassVar = ziegler_forms
+    forms: ClassVar = LazyForms("forms.ziegler")
     default_T: ClassVar[float] = 20.0
     default_x0: ClassVar[Tuple[float, ...]] = (0.1, 0.0)
     default_v0: ClassVar[Tuple[float, ...]] = (0.0, 0.0)
@@ -41,10 +40,10 @@ class Ziegler(LinearScene):
         super().validate()
 
     def mass_matrix(self) -> np.ndarray:
-        return ziegler_forms.mass_matrix(self.m1, self.m2, self.l)
+        return self.forms.mass_matrix(self.m1, self.m2, self.l)
 
     def stiffness_matrix(self) -> np.ndarray:
-        return ziegler_forms.stiffness_matrix(self.c1, self.c2, self.l, self.P)
+        return self.forms.stiffness_matrix(self.c1, self.c2, self.l, self.P)
 
     def damping_matrix(self) -> np.ndarray:
         return np.array([[self.d1 + self.d2, -self.d2], [-self.d2, self.d2]], dtype=float)
