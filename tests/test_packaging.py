@@ -67,7 +67,8 @@ print(f"{status}|{','.join(heavy)}")
 @pytest.mark.serial
 @pytest.mark.parametrize("argv, status", [(["--version"], 0), (["--help"], 0),
                                           (["run", "--help"], 0),
-                                          (["run", "ziegler", "--bogus", "1"], 2)])
+                                          (["run", "ziegler", "--bogus", "1"], 2),
+                                          (["scenes"], 0)])
 def test_help_version_and_bad_options_load_no_heavy_module(argv, status):
     """They answer before DOLFINx, PETSc, MPI, UFL or scipy are imported (about 0.05 s instead
     of 1.7 s, issue 17)."""
