@@ -595,9 +595,9 @@ class _LoopState:
         self.lengths: List[float] = []
         self.batched = 0  # slabs taken in chunks from their slab maps (_batch_step)
         self.chunk = FIRST_CHUNK  # slabs of the next chunk (before the limits of _batch_step)
-        # whether the slab lengths have settled: fixed slabs always, --rtol once the last step
-        # factor kept the length (while the controller still grows and retries, chunks of one
-        # slab would cost more than the slab loop)
+        # whether the slab length has settled (the last slab kept it): while the controller
+        # still shortens, grows and retries, chunks that stop after one slab would cost more
+        # than the slab loop
         self.settled = config.rtol is None
         self.resumed_from: Optional[Dict[str, float]] = None
 
@@ -785,7 +785,7 @@ def _batch_step(sim: Simulation, config: RunConfig, state: _LoopState, schedule:
     # chunks grow while their slabs are all taken (the length settled), and start small again
     # after one stopped early (a controller still finding its length wastes little)
     state.chunk = state.chunk * 4 if done == count else FIRST_CHUNK
-    state.settled = config.rtol is None or (done == count and done > 0)
+    state.settled = done == count
     if not done:
         return 0, None
     batch = outcome[3] if root else None
@@ -908,9 +908,9 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool,
             failure = SolveError(f"slab {k} (t = {t0:g} .. {t0 + dt:g}): {reason}{what}"
                                  + ("" if action == "error" else f"; {_advice(config)}"), slab=k)
             break
-        factor = step_factor(err, order)
-        schedule.accept(factor)
-        state.settled = config.rtol is None or 1.0 <= factor < 2.0
+        length = schedule.length
+        schedule.accept(step_factor(err, order))
+        state.settled = schedule.length == length
         state.lengths.append(dt)
         state.k += 1
 
