@@ -495,9 +495,7 @@ def _estimates(vals: VertexValues, companion: VertexValues, algebraic: Optional[
 
 def _batched(values: VertexValues) -> VertexValues:
     """One slab's values with a leading slab axis of length 1."""
-    return VertexValues(values.s, values.x[None], values.v[None], values.hamiltonian[None],
-                        None if values.xi is None else values.xi[None],
-                        None if values.eta is None else values.eta[None])
+    return values.apply(lambda a: a[None])
 
 
 def _judge(vals: VertexValues, companion: VertexValues, algebraic: Optional[np.ndarray],
@@ -744,10 +742,7 @@ def _chunk(sim: Simulation, config: RunConfig, state: _LoopState, schedule: Slab
 
 
 def _slice(values: VertexValues, count: int) -> VertexValues:
-    return VertexValues(values.s, values.x[:count], values.v[:count],
-                        values.hamiltonian[:count],
-                        None if values.xi is None else values.xi[:count],
-                        None if values.eta is None else values.eta[:count])
+    return values.apply(lambda a: a[:count])
 
 
 def _batch_step(sim: Simulation, config: RunConfig, state: _LoopState, schedule: SlabSchedule,

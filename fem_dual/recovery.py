@@ -54,6 +54,14 @@ class VertexValues:
     xi: Optional[np.ndarray] = None
     eta: Optional[np.ndarray] = None
 
+    def apply(self, f) -> "VertexValues":
+        """The values with f applied to each array of vertex values (x, v, H_d and the dual
+        fields when present; s kept): f(a) = a[j] picks slab j of batched values, a[None] makes
+        one slab a batch."""
+        return VertexValues(self.s, f(self.x), f(self.v), f(self.hamiltonian),
+                            None if self.xi is None else f(self.xi),
+                            None if self.eta is None else f(self.eta))
+
     def finite(self) -> bool:
         arrays = [self.x, self.v, self.hamiltonian] + [a for a in (self.xi, self.eta)
                                                        if a is not None]

@@ -67,29 +67,21 @@ class SlabBatch:
 
     def head(self, count: int) -> "SlabBatch":
         """The first `count` slabs."""
-        v, cut = self.values, slice(0, count)
-        values = VertexValues(v.s, v.x[cut], v.v[cut], v.hamiltonian[cut],
-                              None if v.xi is None else v.xi[cut],
-                              None if v.eta is None else v.eta[cut])
-        return SlabBatch(self.first, self.t0[cut], self.dt[cut], values, self.local[cut],
+        cut = slice(0, count)
+        return SlabBatch(self.first, self.t0[cut], self.dt[cut],
+                         self.values.apply(lambda a: a[cut]), self.local[cut],
                          self.glob[cut], self.local_weighted[cut], self.global_weighted[cut],
                          self.floor[cut], self.schedule[cut], self.scales[cut])
 
     @classmethod
     def of(cls, slab: AcceptedSlab) -> "SlabBatch":
-        v, e = slab.values, slab.estimate
-        one = VertexValues(v.s, v.x[None], v.v[None], v.hamiltonian[None],
-                           None if v.xi is None else v.xi[None],
-                           None if v.eta is None else v.eta[None])
+        e, one = slab.estimate, slab.values.apply(lambda a: a[None])
         return cls(slab.index, np.array([slab.t0]), np.array([slab.dt]), one, e.local[None],
                    e.glob[None], np.array([e.local_weighted]), np.array([e.global_weighted]),
                    np.array([e.floor]), np.array([slab.schedule]), np.array([slab.scales]))
 
     def slab(self, j: int) -> AcceptedSlab:
-        v = self.values
-        values = VertexValues(v.s, v.x[j], v.v[j], v.hamiltonian[j],
-                              None if v.xi is None else v.xi[j],
-                              None if v.eta is None else v.eta[j])
+        values = self.values.apply(lambda a: a[j])
         estimate = SlabEstimate(float(self.t0[j]), float(self.dt[j]), self.local[j],
                                 self.glob[j], float(self.local_weighted[j]),
                                 float(self.global_weighted[j]), tuple(self.floor[j]))

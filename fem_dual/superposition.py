@@ -192,10 +192,8 @@ def select(values: VertexValues, fields: bool, last: bool) -> VertexValues:
         values.xi = values.eta = None
     if last:
         cut = slice(-1, None)
-        values = VertexValues(values.s[cut], values.x[:, cut], values.v[:, cut],
-                              values.hamiltonian[:, cut],
-                              None if values.xi is None else values.xi[:, cut],
-                              None if values.eta is None else values.eta[:, cut])
+        values = values.apply(lambda a: a[:, cut])
+        values.s = values.s[cut]
     return values
 
 
@@ -203,6 +201,4 @@ def first(values: Optional[VertexValues]) -> Optional[VertexValues]:
     """The first slab of batched vertex values (None stays None)."""
     if values is None:
         return None
-    return VertexValues(values.s, values.x[0], values.v[0], values.hamiltonian[0],
-                        None if values.xi is None else values.xi[0],
-                        None if values.eta is None else values.eta[0])
+    return values.apply(lambda a: a[0])
