@@ -14,7 +14,7 @@ import os
 import signal
 import sys
 from contextlib import contextmanager
-from typing import Iterator, List, Optional, Sequence
+from typing import Any, Dict, Iterator, List, Optional, Sequence
 
 from fem_dual import faults
 from fem_dual.errors import InputError, SolveError
@@ -270,6 +270,15 @@ def _stdout_to_stderr(active: bool) -> Iterator[None]:
         os.close(saved)
 
 
+def _reference_line(e: Dict[str, Any]) -> str:
+    if e["x_max"] is None:
+        return "          reference: none (--reference none)"
+    line = f"          reference x_max={e['x_max']:.3e}  v_max={e['v_max']:.3e}  "
+    if e.get("reference_lost_at") is None:
+        return line + f"final={e['final']:.3e}"
+    return line + f"until t={e['reference_lost_at']:g}, where the reference overflowed"
+
+
 def _summary(result: RunResult) -> str:
     e, h, tm = result.error, result.hamiltonian, result.timings
     fin = result.final
@@ -296,9 +305,7 @@ def _summary(result: RunResult) -> str:
         lines += [f"  final   t={fin['t']:g}  x={fmt(fin['x'])}  v={fmt(fin['v'])}",
                   f"  error   estimated x_max={est['x_max']:.3e}  v_max={est['v_max']:.3e}  "
                   f"(no reference needed)",
-                  ("          reference: none (--reference none)" if e["x_max"] is None else
-                   f"          reference x_max={e['x_max']:.3e}  v_max={e['v_max']:.3e}  "
-                   f"final={e['final']:.3e}"),
+                  _reference_line(e),
                   f"  H_d     min={h['min']:.6g}  max={h['max']:.6g}  "
                   f"drift per slab={h['drift']:.3e}"]
     lines.append(f"  time    total {tm['total_s']:.3f} s (compile {tm['compile_s']:.3f} s, "

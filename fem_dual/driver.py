@@ -431,16 +431,20 @@ class GrowthBound:
         lam, U = scene.spectrum
         self.sigma = float(lam.real.max())
         self.kappa = float(np.linalg.cond(U))
-        self.z0 = float(np.linalg.norm(np.concatenate([x0, v0])))
+        z0 = np.concatenate([x0, v0])
+        scale = float(np.abs(z0).max(initial=0.0))  # scaled: |z0| = 1e-200 does not underflow
+        self.z0 = scale * float(np.linalg.norm(z0 / scale)) if scale > 0 else 0.0
 
     def allows(self, t, values: VertexValues):
         """Whether the slab ending at t stays within the bound; of many slabs (t: (slabs,),
         values with a leading slab axis) at once."""
-        z = np.hypot(np.linalg.norm(values.x, axis=-1), np.linalg.norm(values.v, axis=-1))
+        # max norm <= 2-norm: the bound holds for it, and it does not underflow at 1e-160
+        z = np.maximum(np.abs(values.x).max(axis=-1), np.abs(values.v).max(axis=-1))
         if not np.isfinite(self.kappa):  # defective A: no bound to check against
             return np.ones(np.shape(t), dtype=bool) if np.ndim(t) else True
-        return z.max(axis=-1) <= 10 * self.kappa * np.exp(np.minimum(self.sigma * np.asarray(t),
-                                                                      700.0)) * self.z0
+        with np.errstate(divide="ignore"):  # in logarithms: e^(sigma t) may overflow first
+            log_bound = np.log(10 * self.kappa * self.z0) + self.sigma * np.asarray(t)
+            return np.log(z.max(axis=-1)) <= log_bound
 
 
 def _finite(values: VertexValues) -> np.ndarray:
@@ -843,7 +847,10 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool,
                "estimate_s": 0.0, "recovery_s": 0.0, "output_s": 0.0}
     sim._fresh = False
     start_rate = _start_rate(scene, config.x0, config.v0)
-    weights = ErrorWeights(config.tolerance, config.x0, config.v0, start_rate) if root else None
+    # a motion slower than the horizon (a particle at rest) relates |v| to |x| / T: else the
+    # round-off of its velocity would be the scale its velocity errors are measured against
+    weights = (ErrorWeights(config.tolerance, config.x0, config.v0, max(start_rate, 1 / config.T))
+               if root else None)
     # the zero base damps what the slabs do not resolve: no resolution guard, no growth bound
     guarded = scene.linear and config.base_state != "zero"
     rate = scene.fastest_rate(config.x0, config.v0) if (

@@ -111,7 +111,8 @@ class Accumulator:
         self.v: List[np.ndarray] = []
         self.err_x = 0.0
         self.err_v = 0.0
-        self.final_err = (float("nan"), float("nan"))
+        self.final_err: Tuple[Optional[float], Optional[float]] = (None, None)
+        self.reference_lost_at: Optional[float] = None  # the reference overflowed from here on
         self.ham: List[Dict[str, float]] = []
         self.est_x = self.est_v = 0.0
         self.est_final = (0.0, 0.0)
@@ -129,13 +130,7 @@ class Accumulator:
         t = (batch.t0[:, None] + batch.dt[:, None] * vals.s)[keep]
         x, v = vals.x[keep], vals.v[keep]
         if self.flow is not None:
-            tic = time.perf_counter()
-            x_ref, v_ref = self.flow(t)
-            self.reference_s += time.perf_counter() - tic
-            ex, ev = np.abs(x - x_ref).max(axis=1), np.abs(v - v_ref).max(axis=1)
-            self.err_rows.append(np.maximum(ex, ev))
-            self.err_x, self.err_v = max(self.err_x, ex.max()), max(self.err_v, ev.max())
-            self.final_err = (float(ex[-1]), float(ev[-1]))
+            self._compare(t, x, v)
         self.t.append(t), self.x.append(x), self.v.append(v)
         est_x, est_v = batch.reported()
         self.est_rows.append(np.maximum(est_x, est_v)[keep])
@@ -154,6 +149,30 @@ class Accumulator:
         scale = np.maximum(np.abs(h).max(axis=1), np.finfo(float).tiny)
         self.ham += [{"min": float(a), "max": float(b), "drift": float(c)}
                      for a, b, c in zip(low, high, (high - low) / scale)]
+
+    def _compare(self, t: np.ndarray, x: np.ndarray, v: np.ndarray) -> None:
+        """Errors against the reference while it stays finite: an exponentially growing
+        reference overflows before the answer does, and its inf or NaN compares with nothing."""
+        if self.reference_lost_at is None:
+            tic = time.perf_counter()
+            x_ref, v_ref = self.flow(t)
+            self.reference_s += time.perf_counter() - tic
+            with np.errstate(invalid="ignore", over="ignore"):
+                ex, ev = np.abs(x - x_ref).max(axis=1), np.abs(v - v_ref).max(axis=1)
+        else:
+            ex = ev = np.full(len(t), np.nan)
+        lost = ~(np.isfinite(ex) & np.isfinite(ev))
+        if lost.any():
+            self.reference_lost_at = (float(t[lost.argmax()]) if self.reference_lost_at is None
+                                      else self.reference_lost_at)
+            self.final_err = (None, None)
+            ex, ev = np.where(lost, np.nan, ex), np.where(lost, np.nan, ev)
+        else:
+            self.final_err = (float(ex[-1]), float(ev[-1]))
+        self.err_rows.append(np.maximum(ex, ev))
+        if not lost.all():
+            self.err_x = max(self.err_x, float(np.nanmax(ex)))
+            self.err_v = max(self.err_v, float(np.nanmax(ev)))
 
     def arrays(self, n: int):
         if not self.t:
@@ -179,9 +198,10 @@ class Accumulator:
     def error(self) -> Dict[str, Optional[float]]:
         if not self.t or self.flow is None:
             return {"x_max": None, "v_max": None, "final": None, "final_x": None, "final_v": None}
+        fx, fv = self.final_err
         return {"x_max": float(self.err_x), "v_max": float(self.err_v),
-                "final": max(self.final_err), "final_x": self.final_err[0],
-                "final_v": self.final_err[1]}
+                "final": None if fx is None else max(fx, fv), "final_x": fx, "final_v": fv,
+                "reference_lost_at": self.reference_lost_at}
 
 
 def run_identity(config: RunConfig) -> Dict[str, Any]:
