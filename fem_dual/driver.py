@@ -510,6 +510,10 @@ def _judge(vals: VertexValues, companion: VertexValues, algebraic: Optional[np.n
     """(action, weighted local error, reason, estimate) for a solved slab on rank 0: "accept",
     "retry" (shorter) or "refuse" (the run cannot vouch for its answer any more)."""
     if not vals.finite():
+        if np.isfinite(vals.x).all() and np.isfinite(vals.v).all():  # H_d, quadratic, overflows
+            size = max(np.abs(vals.x).max(), np.abs(vals.v).max())
+            return "error", None, (f"the motion grew to {size:.3g}, where H_d (quadratic in the "
+                                   "state) overflows float64; a shorter T ends before it"), None
         return "retry", None, "the recovered state is not finite; try more slabs or cells", None
     if bound is not None and not bound.allows(t0 + dt, vals):
         return "retry", None, ("the motion outgrows the exact flow's bound (noise amplified in "

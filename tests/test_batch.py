@@ -66,7 +66,7 @@ def test_a_chunk_stops_where_the_slab_loop_refuses():
         failures.append(info.value)
     assert failures[0].slab == failures[1].slab > 700
     assert str(failures[0]) == str(failures[1])
-    assert "not finite" in str(failures[0])
+    assert "where H_d (quadratic in the state) overflows float64" in str(failures[0])
     kept = [f.partial for f in failures]
     assert kept[0].solver["batched_slabs"] == failures[0].slab
     assert np.isfinite(kept[0].x).all() and len(kept[0].slab_lengths) == failures[0].slab

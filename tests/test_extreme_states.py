@@ -84,3 +84,15 @@ def test_a_particle_at_rest_stays_at_rest():
         np.testing.assert_allclose(result.x[-1], [0.1, 0.0], atol=1e-15)
         assert np.abs(result.v).max() < 1e-15
         assert result.estimate["x_max"] < 1e-10
+
+
+def test_a_motion_that_overflows_h_d_says_so():
+    """Flutter grows until H_d, quadratic in the state, overflows at |z| ~ 1e154: the run keeps
+    what it computed and says why it stopped, not "try more slabs" (it was refused as noise
+    when the growth bound's 2-norm overflowed first)."""
+    with pytest.raises(Exception) as info:
+        run(RunConfig.create("ziegler", {"P": "3"}, T=1000, slabs=1000, cells=4, degree=3))
+    message = str(info.value)
+    assert "overflows float64" in message and "more slabs" not in message, message
+    kept = info.value.partial
+    assert np.isfinite(kept.x).all() and np.abs(kept.x).max() > 1e150
