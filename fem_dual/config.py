@@ -240,7 +240,7 @@ class RunConfig:
         if self.assembly != "auto":
             return self.assembly == "kronecker"
         return (self.scene.linear and self.scene.n >= KRONECKER_MIN_DOFS
-                and self.recovery == "momentum")
+                and self.recovery == "momentum" and self.base != "predictor")
 
     @property
     def stages(self) -> int:
@@ -309,6 +309,9 @@ class RunConfig:
             raise InputError("assembly=kronecker recovers the motion from the momenta only "
                              f"(recovery={recovery!r})")
         _choice("base", base, ("auto",) + BASES)
+        if assembly == "kronecker" and base == "predictor":
+            raise InputError("base=predictor needs assembly=forms (the Kronecker form holds the "
+                             "start or zero base only)")
         _choice("coordinates", coordinates, COORDINATES)
         if coordinates == "modal":
             if not scene.linear:

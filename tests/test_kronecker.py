@@ -123,3 +123,17 @@ def test_parallel_kronecker_equals_serial():
     par, ser = run(cfg, MPI.COMM_WORLD), run(cfg, MPI.COMM_SELF)
     assert np.array_equal(par.t, ser.t)
     assert _rel(par.x, ser.x) < 1e-10 and _rel(par.v, ser.v) < 1e-10
+
+
+@pytest.mark.serial
+def test_the_predictor_base_is_never_dropped_silently(capsys):
+    """The Kronecker form holds the start or zero base only: --base predictor ran the zero base
+    there and reported "predictor". Now auto assembly takes the forms, and an explicit
+    kronecker assembly is refused."""
+    config = RunConfig.create("column", {"links": "6", "P": "0.1"}, base="predictor")
+    assert not config.kronecker and config.base_state == "predictor"
+    assert RunConfig.create("column", {"links": "6", "P": "0.1"}, base="zero").kronecker
+    capsys.readouterr()
+    assert main(["run", "column", "--param", "links=6", "--base", "predictor",
+                 "--assembly", "kronecker"]) == 2
+    assert "base=predictor needs assembly=forms" in capsys.readouterr().err
