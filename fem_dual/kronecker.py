@@ -264,8 +264,8 @@ class KroneckerSolver:
         if reason < 0:
             raise SolveError(f"CG did not converge (KSP reason {reason}, "
                              f"{self.ksp.getIterationNumber()} iterations)")
-        check_true_residual(self.ksp, self.A, self.x, self.b)
-        self.iterations.append(self.ksp.getIterationNumber())
+        its = self.ksp.getIterationNumber()
+        self.iterations.append(its + check_true_residual(self.ksp, self.A, self.x, self.b))
         p.W[p.free] = _gather(p, self.x.array_r)
 
 
