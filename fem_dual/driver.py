@@ -561,7 +561,7 @@ def _schedule(config: RunConfig, cells: int, rate: float) -> SlabSchedule:
     about one radian per cell (`rate`: the fastest mode of a linear scene, the start's rate of
     a nonlinear one)."""
     if config.rtol is None:
-        return SlabSchedule(config.T, config.slab_count, config.max_halvings)
+        return SlabSchedule(config.T, config.slab_count, config.max_halvings, shrinks=False)
     return SlabSchedule(config.T, 1, ADAPTIVE_LEVELS,
                         first=initial_fraction(rate, config.T, cells))
 
@@ -622,7 +622,7 @@ class _LoopState:
         state = bcast(comm, state)
         if state is None:
             return
-        self.k, self.z, self.d, self.lengths, (schedule.pos, schedule.length), t = state
+        self.k, self.z, self.d, self.lengths, schedule.state, t = state
         self.resumed_from = {"slab": self.k, "t": t}
 
 
@@ -692,29 +692,23 @@ def _judge_chunk(config: RunConfig, state: _LoopState, schedule: SlabSchedule,
     if bound is not None:
         ok &= bound.allows(t0s + dt, vals)
     # the accepted run ends before a slab that fails, or after one whose step factor changes
-    # the length (SlabSchedule.accept: below 1 it shortens, from 2 on it grows, up to the
-    # nominal length)
+    # the length (SlabSchedule.accept: below 1 it shortens, from 2 on it may grow)
     order = 2 * config.degree
     done = int(np.argmin(ok)) if not ok.all() else count
-    factors, length = step_factors(est.err_local[:done], order), schedule.length
-    changes = np.flatnonzero(((factors < 1.0) & (length > 1))
-                             | ((factors >= 2.0) & (length < schedule.nominal)))
-    if len(changes):
-        done = int(changes[0]) + 1
-    trial = copy.copy(schedule)
-    batch = None
+    trial, states = copy.copy(schedule), []
+    for factor in step_factors(est.err_local[:done], order):
+        trial.accept(float(factor))
+        states.append(trial.state)
+        if trial.length != schedule.length:
+            break
+    done, batch = len(states), None
     if done:
-        trial.pos += trial.length * (done - 1)
-        trial.accept(step_factor(float(est.err_local[done - 1]), order))
-        positions = schedule.pos + schedule.length * np.arange(1, done + 1)
         batch = SlabBatch(state.k, t0s[:done], np.full(done, dt), _slice(vals, done),
                           est.local[:done], est.glob[:done], est.err_local[:done],
-                          est.err_global[:done], est.floor[:done],
-                          np.column_stack([positions, np.full(done, schedule.length)]),
+                          est.err_global[:done], est.floor[:done], np.array(states),
                           est.scales[:done])
-        batch.schedule[-1, 1] = trial.length
         weights.scale_x, weights.scale_v = est.scales[done - 1]
-    return (done, trial.pos, trial.length), Z[done], D[done], batch
+    return (done, trial.state), Z[done], D[done], batch
 
 
 def _chunk(sim: Simulation, config: RunConfig, state: _LoopState, schedule: SlabSchedule,
@@ -784,7 +778,7 @@ def _batch_step(sim: Simulation, config: RunConfig, state: _LoopState, schedule:
     root = comm.rank == 0
     if problem:
         return 0, SolveError(f"slab {state.k} (t = {t0:g}): {problem}", slab=state.k)
-    (done, schedule.pos, schedule.length), z, d = bcast(comm, outcome[:3] if root else None)
+    (done, schedule.state), z, d = bcast(comm, outcome[:3] if root else None)
     # chunks grow while their slabs are all taken (the length settled), and start small again
     # after one stopped early (a controller still finding its length wastes little)
     state.chunk = state.chunk * 4 if done == count else FIRST_CHUNK
@@ -923,7 +917,7 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool,
         def record() -> Tuple[np.ndarray, np.ndarray]:
             """The sinks take the slab; the next slab's start state and its error."""
             weights.record(vals.x, vals.v)
-            slab = AcceptedSlab(k, t0, dt, vals, verdict[3], (schedule.pos, schedule.length),
+            slab = AcceptedSlab(k, t0, dt, vals, verdict[3], schedule.state,
                                 (weights.scale_x, weights.scale_v))
             for sink in sinks:
                 sink.add(slab)

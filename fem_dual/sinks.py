@@ -13,6 +13,7 @@ from typing import Any, Dict, List, Optional, Tuple
 import numpy as np
 
 from fem_dual.config import RunConfig
+from meshes import SlabSchedule
 from fem_dual.errors import InputError
 from fem_dual.output import (XdmfSeries, lock_directory, series_files, write_polyline,
                              written_by_us)
@@ -26,14 +27,14 @@ __all__ = ["AcceptedSlab", "SlabBatch", "PartialBatch", "Accumulator", "XdmfSink
 @dataclass
 class AcceptedSlab:
     """What the sinks receive for every accepted slab (rank 0). `schedule` is the slab
-    schedule's (position, length) after the slab, `scales` the error weights' scales."""
+    schedule's state after the slab (SlabSchedule.state), `scales` the error weights' scales."""
 
     index: int
     t0: float
     dt: float
     values: VertexValues
     estimate: SlabEstimate
-    schedule: tuple = (0, 0)
+    schedule: tuple = (0, 0, 0, 0, 0)
     scales: tuple = (0.0, 0.0)
 
 
@@ -59,7 +60,7 @@ class SlabBatch:
     local_weighted: np.ndarray  # (slabs,)
     global_weighted: np.ndarray  # (slabs,)
     floor: np.ndarray  # (slabs, 2)
-    schedule: np.ndarray  # (slabs, 2)
+    schedule: np.ndarray  # (slabs, SlabSchedule.STATE_SIZE)
     scales: np.ndarray  # (slabs, 2)
 
     def __len__(self) -> int:
@@ -299,7 +300,7 @@ class XdmfSink:
         return [str(p) for p in series_files(self.out, self.name) if p.exists()]
 
 
-_RESTART_FIELDS = {"slab": 12, "s": None, "local": None, "glob": None}
+_RESTART_FIELDS = {"slab": 10 + SlabSchedule.STATE_SIZE, "s": None, "local": None, "glob": None}
 
 
 def _check_restart(path: Path, stored, steps: Dict[str, np.ndarray],
@@ -352,13 +353,15 @@ class Restart:
         self.slabs: List[AcceptedSlab] = []
         n = config.scene.n
         for k, row in enumerate(restart["slab"]):
-            (index, t0, dt, pos, length, sx, sv, lw, gw, fx, fv, et0) = row
+            (index, t0, dt), row = row[:3], row[3:]
+            schedule, (sx, sv, lw, gw, fx, fv, et0) = (row[:SlabSchedule.STATE_SIZE],
+                                                       row[SlabSchedule.STATE_SIZE:])
             vals = VertexValues(restart["s"][k], steps["x_hat"][k].reshape(-1, n),
                                 steps["v_hat"][k].reshape(-1, n), steps["hamiltonian"][k])
             est = SlabEstimate(et0, dt, restart["local"][k], restart["glob"][k], lw, gw,
                                (fx, fv))
             self.slabs.append(AcceptedSlab(int(index), t0, dt, vals, est,
-                                           (int(pos), int(length)), (sx, sv)))
+                                           tuple(int(a) for a in schedule), (sx, sv)))
 
 
 class ProgressSink:

@@ -101,12 +101,11 @@ class ErrorWeights:
     def running(self, x: np.ndarray, v: np.ndarray) -> np.ndarray:
         """(slabs, 2): `with_motion` of each of consecutive slabs (x, v: (slabs, vertices, n)),
         each recorded before the next."""
-        seen = []
-        for start, part in ((self.scale_x, x), (self.scale_v, v)):
-            peaks = np.abs(part).reshape(len(part), -1).max(axis=1, initial=0.0)
-            seen.append(np.maximum.accumulate(np.concatenate([[start], peaks]))[1:])
-        sx, sv = seen
-        return np.column_stack([np.where(sx > 0, sx, sv), np.where(sv > 0, sv, sx)])
+        peaks = np.column_stack([_peaks(x), _peaks(v)])
+        peaks[0] = np.maximum(peaks[0], (self.scale_x, self.scale_v))
+        seen = np.maximum.accumulate(peaks, axis=0) if len(peaks) > 1 else peaks
+        # a part that has not moved at all takes the other part's scale
+        return np.where(seen > 0, seen, seen[:, ::-1])
 
     def norm(self, e: np.ndarray, scales: Tuple[float, float]) -> float:
         """max_i |e_i| / w_i over the rows of e (vertices, 2n); 0 for a zero error."""
@@ -114,15 +113,16 @@ class ErrorWeights:
 
     def norms(self, e: np.ndarray, scales: np.ndarray) -> np.ndarray:
         """`norm` of many slabs: e (slabs, vertices, 2n), scales (slabs, 2)."""
-        n, tol = self.n, self.tol
-        worst = np.zeros(len(e))
-        for k, part in enumerate((e[..., :n], e[..., n:])):
-            size = np.abs(part).reshape(len(e), -1).max(axis=1, initial=0.0)
-            weight = tol.atol + tol.rtol * scales[:, k]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                ratio = np.where(weight > 0, size / np.where(weight > 0, weight, 1.0), np.inf)
-            worst = np.maximum(worst, np.where(size > 0, ratio, 0.0))
-        return worst
+        size = np.abs(e.reshape(len(e), -1, 2, self.n)).max(axis=(1, 3), initial=0.0)
+        weight = self.tol.atol + self.tol.rtol * scales
+        ratio = np.divide(size, weight, out=np.zeros_like(size), where=weight > 0)
+        ratio[(weight <= 0) & (size > 0)] = np.inf  # an error where nothing may err
+        return ratio.max(axis=1)
+
+
+def _peaks(part: np.ndarray) -> np.ndarray:
+    """max |part| of each slab (part: (slabs, vertices, n))."""
+    return np.abs(part).reshape(len(part), -1).max(axis=1, initial=0.0)
 
 
 def step_factor(err: Optional[float], order: int) -> float:
@@ -130,7 +130,9 @@ def step_factor(err: Optional[float], order: int) -> float:
     (err ~ dt^order); a solve that failed (err None) or a non-finite error halves."""
     if err is None or not math.isfinite(err):
         return 0.5 if err is None else MIN_SHRINK
-    return float(step_factors(np.array([err]), order)[0])
+    if not err > 0.0:
+        return MAX_GROWTH
+    return min(max(SAFETY * err ** (-1.0 / order), MIN_SHRINK), MAX_GROWTH)
 
 
 def step_factors(err: np.ndarray, order: int) -> np.ndarray:

@@ -52,12 +52,21 @@ def slab_mesh(comm: MPI.Comm, cells: int) -> SlabMesh:
     return SlabMesh(msh, tags, start, end, cells)
 
 
+FIRST_PATIENCE = 4  # slabs a rejected length is not tried again, after its first rejection
+MAX_PATIENCE = 256  # ... doubled after each repeated rejection up to this
+
+
 class SlabSchedule:
     """Slabs of [0, T]: nominally `slabs` equal ones, each cut at most `max_halvings` times
     (minimum length T / (slabs 2^max_halvings)). Lengths are powers of two of that minimum, so
     equal lengths recur (linear scenes reuse their slab maps); a slab grows back after a success
     by the factor its caller allows, never beyond the nominal length, and only to a length its
     start position is a multiple of (so the end of [0, T] is met without an odd last slab).
+
+    A rejected length is remembered (`ceiling`): the slabs grow back to it only after `wait`
+    accepted slabs, a wait that doubles each time the same length is rejected again (up to
+    MAX_PATIENCE) and halves when it passes. Without it an error just above the tolerance at
+    one length and well below it at half that length made every other attempt a rejection.
 
     Positions are kept as integers in units of the minimum length, so start times carry no
     accumulated round-off and equal slabs start exactly at k T / slabs.
@@ -68,14 +77,32 @@ class SlabSchedule:
         max_halvings: how often a nominal slab may be halved.
         first: the first slab's length as a fraction of the nominal one (rounded down to a
             power of two).
+        shrinks: whether an accepted slab's factor below 1 shortens the next one (lengths
+            chosen by a tolerance); fixed slabs keep their length until one is rejected (a slab
+            accepted close to the tolerance made two half slabs every few dozen slabs).
     """
 
-    def __init__(self, T: float, slabs: int, max_halvings: int = 0, first: float = 1.0):
-        self.T = T
+    STATE_SIZE = 5  # len(state)
+
+    def __init__(self, T: float, slabs: int, max_halvings: int = 0, first: float = 1.0,
+                 shrinks: bool = True):
+        self.T, self.shrinks = T, shrinks
         self.nominal = 2**max_halvings
         self.total = slabs * self.nominal
         self.pos = 0
         self.length = self._power_of_two_at_most(self.nominal * min(max(first, 0.0), 1.0))
+        self.ceiling = 0  # units; 0: no rejected length to keep below
+        self.wait = 0  # accepted slabs before the ceiling may be tried again
+        self.patience = 0  # the wait after the next rejection at the ceiling (halved)
+
+    @property
+    def state(self) -> Tuple[int, int, int, int, int]:
+        """Everything `accept` and `halve` depend on (a resumed run restores it)."""
+        return (self.pos, self.length, self.ceiling, self.wait, self.patience)
+
+    @state.setter
+    def state(self, value) -> None:
+        self.pos, self.length, self.ceiling, self.wait, self.patience = (int(a) for a in value)
 
     def _power_of_two_at_most(self, units: float) -> int:
         units = min(max(units, 1.0), float(self.nominal))
@@ -92,7 +119,14 @@ class SlabSchedule:
     def accept(self, factor: float = 2.0) -> None:
         """Advance past the current slab; the next one is at most `factor` times as long."""
         self.pos += min(self.length, self.total - self.pos)
-        length = self._power_of_two_at_most(self.length * factor)
+        length = self._power_of_two_at_most(self.length * (factor if self.shrinks
+                                                          else max(factor, 1.0)))
+        if self.ceiling and self.length >= self.ceiling:  # the rejected length passed now
+            self.ceiling, self.patience = 0, self.patience // 2
+        elif self.ceiling:
+            self.wait = max(self.wait - 1, 0)
+            if self.wait:
+                length = min(length, self.ceiling // 2)
         while length > 1 and self.pos % length:
             length //= 2
         self.length = length
@@ -102,5 +136,10 @@ class SlabSchedule:
         it is already at the minimum length."""
         if self.length == 1:
             return False
+        if self.length == self.ceiling:  # rejected again after the wait: wait longer
+            self.patience = min(2 * self.patience, MAX_PATIENCE)
+        else:
+            self.patience = max(self.patience, FIRST_PATIENCE)
+        self.ceiling, self.wait = self.length, self.patience
         self.length = self._power_of_two_at_most(self.length * min(factor, 0.5))
         return True

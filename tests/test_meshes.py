@@ -1,7 +1,9 @@
 """The slab schedule of meshes/."""
+import numpy as np
 import pytest
 
 from meshes import SlabSchedule
+from meshes.time_mesh import FIRST_PATIENCE, MAX_PATIENCE
 
 
 def _walk(schedule, fail_at=()):
@@ -23,12 +25,62 @@ def test_equal_slabs_start_exactly_at_k_T_over_S():
 
 def test_halving_then_growing_back_covers_the_interval():
     slabs = _walk(SlabSchedule(4.0, 2, max_halvings=3), fail_at={(2.0, 2.0), (2.0, 1.0)})
-    # after 2.5 the length grows back only where the position is a multiple of it
-    assert slabs == [(0.0, 2.0), (2.0, 0.5), (2.5, 0.5), (3.0, 1.0)]
+    # the rejected length 1.0 is not tried again for FIRST_PATIENCE slabs
+    assert slabs == [(0.0, 2.0), (2.0, 0.5), (2.5, 0.5), (3.0, 0.5), (3.5, 0.5)]
     assert sum(dt for _, dt in slabs) == pytest.approx(4.0)
+    slabs = _walk(SlabSchedule(8.0, 2, max_halvings=3), fail_at={(4.0, 4.0), (4.0, 2.0)})
+    # after the wait it grows back only where the position is a multiple of the length
+    assert slabs == [(0.0, 4.0), (4.0, 1.0), (5.0, 1.0), (6.0, 1.0), (7.0, 1.0)]
+    slabs = _walk(SlabSchedule(16.0, 2, max_halvings=3), fail_at={(8.0, 8.0), (8.0, 4.0)})
+    assert slabs == [(0.0, 8.0)] + [(8.0 + k * 2.0, 2.0) for k in range(4)]
+
+
+def test_a_length_rejected_again_waits_twice_as_long():
+    """An error just above the tolerance at one length and below it at half of it: each
+    attempt at the long length after the wait fails, and the waits double, so the attempts
+    thin out (they were every other slab)."""
+    schedule = SlabSchedule(1000.0, 1000, max_halvings=1)
+    attempts, slabs = 0, 0
+    while not schedule.done():
+        t0, dt = schedule.current()
+        if dt == 1.0:
+            attempts += 1
+            assert schedule.halve()
+            continue
+        slabs += 1
+        schedule.accept(4.0)
+    assert slabs == 2000
+    waits = FIRST_PATIENCE * 2 ** np.arange(10)
+    assert attempts <= 1 + np.searchsorted(np.cumsum(np.minimum(waits, MAX_PATIENCE)), 2000) + 2
+    assert attempts < 20
+
+
+def test_a_passed_length_is_forgotten():
+    schedule = SlabSchedule(100.0, 100, max_halvings=2)
+    assert schedule.halve()
+    for _ in range(FIRST_PATIENCE):
+        schedule.accept(4.0)
+    assert schedule.current()[1] == 1.0 and schedule.ceiling == 4
+    schedule.accept(4.0)
+    assert schedule.ceiling == 0 and schedule.current()[1] == 1.0
+    state = schedule.state
+    again = SlabSchedule(100.0, 100, max_halvings=2)
+    again.state = state
+    assert again.state == state and again.current() == schedule.current()
 
 
 def test_halving_stops_at_the_minimum_length():
     schedule = SlabSchedule(1.0, 1, max_halvings=2)
     assert schedule.halve() and schedule.halve() and not schedule.halve()
     assert schedule.current() == (0.0, 0.25)
+
+
+def test_fixed_slabs_keep_their_length_until_one_is_rejected():
+    """A slab accepted close to the tolerance (factor below 1) shortened the next fixed slab:
+    two half slabs every few dozen slabs, each pair breaking a chunk of equal slabs."""
+    fixed = SlabSchedule(10.0, 10, max_halvings=3, shrinks=False)
+    adaptive = SlabSchedule(10.0, 10, max_halvings=3)
+    for schedule in (fixed, adaptive):
+        schedule.accept(0.8)
+    assert fixed.current() == (1.0, 1.0)
+    assert adaptive.current() == (1.0, 0.5)
