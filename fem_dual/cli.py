@@ -142,6 +142,15 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _world(comm: "Optional[MPI.Comm]") -> "MPI.Comm":
+    """`comm`, or MPI's world communicator (loaded only now)."""
+    if comm is not None:
+        return comm
+    from mpi4py import MPI
+
+    return MPI.COMM_WORLD
+
+
 def _rank(comm) -> int:
     """This process's rank: the communicator's, or (before MPI is loaded) the launcher's."""
     if comm is not None:
@@ -447,10 +456,6 @@ def _main(argv: Optional[Sequence[str]], comm: "Optional[MPI.Comm]") -> int:
             return 0
         if args.command == "run":
             faults.arm()
-        if comm is None:
-            from mpi4py import MPI
-
-            comm = MPI.COMM_WORLD
         if getattr(args, "scene_file", None):
             from fem_dual.scenes import load_scene_file
 
@@ -461,6 +466,8 @@ def _main(argv: Optional[Sequence[str]], comm: "Optional[MPI.Comm]") -> int:
             if key in params:
                 raise InputError(f"--param {key} is given twice ({params[key]!r} and {value!r})")
             params[key] = value
+        if args.command in ("bench", "flutter", "stress"):
+            comm = _world(comm)
         if args.command == "bench":
             return _bench(args, params, comm)
         if args.command == "flutter":
@@ -468,7 +475,6 @@ def _main(argv: Optional[Sequence[str]], comm: "Optional[MPI.Comm]") -> int:
         if args.command == "stress":
             return _stress(args, comm)
         from fem_dual.config import RunConfig
-        from fem_dual.driver import run
 
         petsc = dict(_key_value(p, "--petsc-option") for p in args.petsc_option)
         if args.F is not None:
@@ -487,6 +493,9 @@ def _main(argv: Optional[Sequence[str]], comm: "Optional[MPI.Comm]") -> int:
                                   t_eval=args.t_eval)
         if args.resume and args.out is None:
             raise InputError("--resume needs --out: the directory of the run to go on with")
+        comm = _world(comm)  # after the values are checked: bad input answers before MPI loads
+        from fem_dual.driver import run
+
         files = _check_files(comm, args)  # after validation: bad input writes nothing
         with _stdout_to_stderr(args.json):
             result = run(config, comm, progress=not args.json and sys.stderr.isatty(),

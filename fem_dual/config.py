@@ -14,9 +14,7 @@ import numpy as np
 
 from fem_dual.base_state import stiff_at_start
 from fem_dual.errors import InputError
-from fem_dual.modal import modal_obstacle
-from fem_dual.problem import BASES
-from fem_dual.recovery import RECOVERIES
+from fem_dual.choices import BASES, RECOVERIES
 from fem_dual.scenes import Scene, get_scene
 from fem_dual.scenes.base import (DENSE_BUDGET, DENSE_WORDS, MAX_DOFS, parse_number,
                                   parse_vector, show)
@@ -223,6 +221,8 @@ class RunConfig:
         auto for a stiff linear scene on the zero base whose modes allow it."""
         if self.coordinates != "auto":
             return self.coordinates == "modal"
+        from fem_dual.modal import modal_obstacle
+
         return (self._stiff_linear and self.base_state == "zero"
                 and self.scene.n <= MODAL_MAX_DOFS and modal_obstacle(self.scene) is None)
 
@@ -317,6 +317,8 @@ class RunConfig:
             if not scene.linear:
                 raise InputError(f"coordinates=modal needs a linear scene ({scene.name} is "
                                  "nonlinear)")
+            from fem_dual.modal import modal_obstacle
+
             obstacle = modal_obstacle(scene)
             if obstacle:
                 raise InputError(f"coordinates=modal: {obstacle}")
@@ -339,7 +341,7 @@ class RunConfig:
                      superpose, staging, recovery, assembly, rtol_, atol_, base, coordinates,
                      reference, times)
         from fem_dual.petsc_check import check_user_options  # PETSc options are input too
-        from fem_dual.solvers import solver_prefix
+        from fem_dual.petsc_check import solver_prefix
 
         path = ("kronecker" if config.kronecker else "forms") if scene.linear else "snes"
         check_user_options(solver_prefix(scene.name), petsc_, path)

@@ -22,7 +22,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from fem_dual.errors import InputError
-from fem_dual.recovery import VertexValues, times_last
+from fem_dual.values import VertexValues, times_last
 from fem_dual.scenes.base import is_spd
 from fem_dual.scenes.linear import LinearScene
 

@@ -31,6 +31,11 @@ from petsc4py import PETSc
 
 from fem_dual.errors import InputError
 
+
+def solver_prefix(scene_name: str) -> str:
+    """The PETSc options prefix of a scene's slab solver."""
+    return "dual_" + scene_name.replace("-", "_") + "_"
+
 __all__ = ["PATHS", "SOLVE_TIME", "SNES_TYPES", "check_options", "check_user_options",
            "user_options", "options_used", "require_used", "available_types", "solver_packages",
            "last_line"]

@@ -21,18 +21,12 @@ from scipy.integrate import solve_ivp
 import scipy.linalg as sla
 from scipy.linalg import expm
 
+from fem_dual.scenes.linear import first_order_matrix
+
 __all__ = ["LinearFlow", "EigenFlow", "IVPFlow", "first_order_matrix", "linear_reference",
            "linear_flow", "EIGEN_MAX_CONDITION"]
 
 EIGEN_MAX_CONDITION = 1e6  # eigenvectors beyond this (near flutter, defective): expm instead
-
-
-def first_order_matrix(M: np.ndarray, K: np.ndarray, D: Optional[np.ndarray] = None) -> np.ndarray:
-    """A of z' = A z for M x'' + D x' + K x = 0."""
-    n = M.shape[0]
-    D = np.zeros((n, n)) if D is None else D
-    return np.block([[np.zeros((n, n)), np.eye(n)],
-                     [-np.linalg.solve(M, K), -np.linalg.solve(M, D)]])
 
 
 class LinearFlow:

@@ -22,7 +22,8 @@ from petsc4py import PETSc
 
 from fem_dual.compat import destroy_petsc
 from fem_dual.errors import InputError, SolveError
-from fem_dual.petsc_check import check_user_options, last_line, require_used, user_options
+from fem_dual.petsc_check import (check_user_options, last_line, require_used, solver_prefix,
+                                  user_options)
 from fem_dual.problem import SlabProblem
 
 __all__ = ["LINEAR_DEFAULTS", "direct_solver", "solver_prefix", "petsc_options", "SolverOptions",
@@ -39,10 +40,6 @@ def direct_solver(comm) -> str:
     """LU package: PETSc's own in serial (the slab matrices are banded; it beats MUMPS from a few
     hundred to a few hundred thousand dofs, measured in the README), MUMPS in parallel."""
     return "petsc" if comm.size == 1 else "mumps"
-
-
-def solver_prefix(scene_name: str) -> str:
-    return "dual_" + scene_name.replace("-", "_") + "_"
 
 
 @contextmanager

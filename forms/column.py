@@ -17,7 +17,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from forms.linear import aux_potential, dtp, dtp_map, force
+import importlib
+
+_LINEAR = ("aux_potential", "dtp", "dtp_map", "force")  # its dual forms: those of forms.linear
+
+
+def __getattr__(name: str):
+    """The UFL names load on first use (PEP 562): the scene's matrices validate input without
+    importing UFL."""
+    if name in _LINEAR:
+        return getattr(importlib.import_module("forms.linear"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 __all__ = ["mass_matrix", "joint_matrix", "follower_matrix", "force", "aux_potential",
            "dtp_map", "dtp"]

@@ -68,11 +68,30 @@ print(f"{status}|{','.join(heavy)}")
 @pytest.mark.parametrize("argv, status", [(["--version"], 0), (["--help"], 0),
                                           (["run", "--help"], 0),
                                           (["run", "ziegler", "--bogus", "1"], 2),
-                                          (["scenes"], 0)])
+                                          (["scenes"], 0),
+                                          (["run", "ziegler", "--T", "-1"], 2),
+                                          (["run", "column", "--param", "links=5", "--x0",
+                                            "1,2"], 2),
+                                          (["run", "curl2d", "--cells", "0"], 2),
+                                          (["run", "curl3d-ufl", "--rtol", "2"], 2),
+                                          (["run", "linear", "--param", "dofs=2", "--param",
+                                            "M=1,0,0,-1"], 2),
+                                          (["run", "ziegler", "--base", "predictor",
+                                            "--assembly", "kronecker"], 2)])
 def test_help_version_and_bad_options_load_no_heavy_module(argv, status):
     """They answer before DOLFINx, PETSc, MPI, UFL or scipy are imported (about 0.05 s instead
-    of 1.7 s, issue 17)."""
+    of 1.7 s, issue 17), bad values of a run included (1 s before: the configuration imported
+    the slab problem, the scenes their UFL forms, the command line MPI)."""
     done = subprocess.run([sys.executable, "-c", _HEAVY, *argv], capture_output=True, text=True)
     got_status, heavy = done.stdout.strip().splitlines()[-1].split("|")
     assert int(got_status) == status, done.stderr
     assert heavy == "", f"{argv} imported {heavy}"
+
+
+@pytest.mark.serial
+def test_a_bad_modal_request_loads_neither_dolfinx_nor_petsc():
+    done = subprocess.run([sys.executable, "-c", _HEAVY, "run", "ziegler", "--coordinates",
+                           "modal", "--param", "P=3"], capture_output=True, text=True)
+    got_status, heavy = done.stdout.strip().splitlines()[-1].split("|")
+    assert int(got_status) == 2 and "does not oscillate" in done.stderr
+    assert heavy == "scipy", heavy  # the pencil's eigenvalues: scipy.linalg only"

@@ -36,6 +36,14 @@ def _same(a, b) -> bool:
         return a is b
 
 
+def first_order_matrix(M: np.ndarray, K: np.ndarray, D: Optional[np.ndarray] = None) -> np.ndarray:
+    """A of z' = A z for M x'' + D x' + K x = 0."""
+    n = M.shape[0]
+    D = np.zeros((n, n)) if D is None else D
+    return np.block([[np.zeros((n, n)), np.eye(n)],
+                     [-np.linalg.solve(M, K), -np.linalg.solve(M, D)]])
+
+
 @dataclasses.dataclass(frozen=True)
 class LinearScene(Scene):
     """M q'' + D q' + K q = 0 with the explicit DtP map of forms.linear; one KSP solve per slab."""
@@ -129,8 +137,6 @@ class LinearScene(Scene):
                 "A": A, "B": B, "Ainv": np.linalg.inv(A), "Binv": np.linalg.inv(B)}
 
     def first_order_matrix(self) -> np.ndarray:
-        from fem_dual.reference import first_order_matrix
-
         return first_order_matrix(self.mass_matrix(), self.stiffness_matrix(),
                                   self.damping_matrix())
 
