@@ -12,17 +12,11 @@ from __future__ import annotations
 
 import numpy as np
 
-import importlib
+from forms import linear_forms_on_use
 
-_LINEAR = ("aux_potential", "dtp", "dtp_map", "force")  # its dual forms: those of forms.linear
-
-
-def __getattr__(name: str):
-    """The UFL names load on first use (PEP 562): the scene's matrices validate input without
-    importing UFL."""
-    if name in _LINEAR:
-        return getattr(importlib.import_module("forms.linear"), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+# its dual forms are those of forms.linear, loaded on first use: the scene's matrices validate
+# input without importing UFL
+__getattr__ = linear_forms_on_use(__name__)
 
 __all__ = ["mass_matrix", "stiffness_matrix", "force", "aux_potential", "dtp_map",
            "dtp"]
