@@ -17,7 +17,6 @@ from __future__ import annotations
 from typing import Callable, Optional, Tuple
 
 import numpy as np
-from scipy.integrate import solve_ivp
 import scipy.linalg as sla
 from scipy.linalg import expm
 
@@ -143,6 +142,8 @@ class IVPFlow:
         ahead = t > self.t
         out[~ahead] = self.z  # times at the current point (a slab junction)
         if ahead.any():
+            from scipy.integrate import solve_ivp  # 0.3 s of imports that linear scenes skip
+
             sol = solve_ivp(self._rhs, (self.t, t[-1]), self.z, method="DOP853", t_eval=t[ahead],
                             rtol=self.rtol, atol=self.atol)
             if sol.status != 0 or sol.y.shape[1] != ahead.sum():

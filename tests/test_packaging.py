@@ -95,3 +95,15 @@ def test_a_bad_modal_request_loads_neither_dolfinx_nor_petsc():
     got_status, heavy = done.stdout.strip().splitlines()[-1].split("|")
     assert int(got_status) == 2 and "does not oscillate" in done.stderr
     assert heavy == "scipy", heavy  # the pencil's eigenvalues: scipy.linalg only"
+
+
+@pytest.mark.serial
+def test_a_linear_run_does_not_load_the_nonlinear_reference_integrator():
+    """scipy.integrate (0.2-0.4 s of imports) serves DOP853 references of nonlinear scenes; a
+    linear scene's reference is the eigen-decomposition or expm (issue 17: a run imports only
+    what it needs)."""
+    script = ("import sys\nfrom fem_dual.cli import main\n"
+              "status = main(['run', 'ziegler', '--T', '2', '--slabs', '2', '--cells', '8'])\n"
+              "print(status, 'scipy.integrate' in sys.modules)")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert done.stdout.strip().splitlines()[-1] == "0 False", done.stdout + done.stderr
