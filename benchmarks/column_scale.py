@@ -65,6 +65,7 @@ def main(argv=None) -> int:
                               x0=x0, v0=np.zeros(args.links), assembly="kronecker",
                               base=args.base, coordinates=args.coordinates)
     prep_s = time.perf_counter() - tic
+    comm.Barrier()  # ranks start up to 1 s apart: that launch skew is not the run's set-up
     sim = Simulation.for_config(config, comm)
     result = sim.run(config)
     rss = allreduce(comm, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, "max")
