@@ -1,4 +1,4 @@
-"""Command line: `fem-dual run | bench | flutter | stress | scenes`.
+"""Command line: `fem-dual run | orbit | bench | flutter | stress | scenes`.
 
 Exit status: 0 success, 2 bad input (one line on stderr naming the value), 3 a failed solve or a
 failed write (the slabs completed before it are kept, in the output files and in the JSON with
@@ -26,7 +26,8 @@ __all__ = ["main", "build_parser"]
 
 # Options whose value may start with "-" (negative numbers): "--x0 -1,2" is joined to "--x0=-1,2".
 _VALUE_OPTIONS = ("--T", "--x0", "--v0", "--param", "--cells", "--degree", "--slabs",
-                  "--max-halvings", "--rtol", "--atol", "--F", "--t-eval")
+                  "--max-halvings", "--rtol", "--atol", "--F", "--t-eval", "--period",
+                  "--mode", "--continue")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -114,6 +115,28 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--petsc-option", action="append", default=[], metavar="KEY=VALUE",
                    help="PETSc option under the solver prefix dual_<scene>_, e.g. ksp_type=cg "
                    "(checked: bad or unused options exit 2)")
+    o = sub.add_parser("orbit", help="a periodic orbit from the dual principle: period, "
+                       "Floquet multipliers, continuation in a parameter")
+    o.add_argument("scene", metavar="SCENE", help="a scene name (`fem-dual scenes` lists them)")
+    o.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                   help="scene parameter (repeatable); matrices as a11,a12,... or a scalar")
+    o.add_argument("--F", help="scene force: the force, one expression per component")
+    o.add_argument("--x0", help="start of the guess: position a,b,...")
+    o.add_argument("--v0", help="start of the guess: velocity a,b,... (default 0)")
+    o.add_argument("--period", required=True, help="the guess's period T0: the guess is the "
+                   "motion from x0, v0 over T0")
+    o.add_argument("--mode", default="closest", help="closest (default: period and unfolding "
+                   "unknown, the family member closest to the guess), period (T0 kept), "
+                   "energy=E (mean energy E; linear scenes with symmetric K, undamped)")
+    o.add_argument("--cells", default="64", help="time cells over one period (default 64)")
+    o.add_argument("--degree", default="4", help="degree of the dual fields (default 4)")
+    o.add_argument("--continue", dest="continuation", metavar="NAME=A:B:STEPS",
+                   help="follow the orbit along a scene parameter from A to B in STEPS steps")
+    o.add_argument("--no-estimate", action="store_true", help="skip the degree p+1 solve that "
+                   "estimates the orbit's error")
+    o.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    o.add_argument("--out", help="write orbit.json and orbit.csv into this directory")
+    o.add_argument("--plot", help="write orbit.png (and continuation.png) into this directory")
     b = sub.add_parser("bench", help="error against run time: fem-dual beside RK45, DOP853, Radau")
     _add_problem_arguments(b, "slabs of the fem-dual runs, a list to sweep (default 1)")
     b.add_argument("--cells", default="2,4,8,16,32", help="cells per slab to sweep")
@@ -412,6 +435,80 @@ def _flutter(args, params, comm: MPI.Comm) -> int:
     return 0
 
 
+def _orbit(args, params, comm) -> int:
+    """`fem-dual orbit`: rank 0 solves (an orbit's time mesh is small), the others wait for its
+    exit status. Exit 0 ok, 2 bad input, 3 no orbit (the JSON says what was reached)."""
+    from fem_dual.config import RunConfig
+    from fem_dual.orbit import energy_matrices, parse_continuation, parse_mode
+
+    if args.F is not None:
+        if args.scene != "force":
+            raise InputError(f"--F gives the force of scene force, not of {args.scene}")
+        params["F"] = args.F
+    mode, energy = parse_mode(args.mode)
+    from fem_dual.scenes.base import parse_number
+
+    if not parse_number("period", args.period) > 0:
+        raise InputError(f"period={args.period!r} must be positive")
+    config = RunConfig.create(args.scene, params, T=args.period, cells=args.cells,
+                              degree=args.degree, x0=args.x0, v0=args.v0)
+    if config.degree > 8:
+        raise InputError(f"degree={config.degree} is too large for orbits (at most 8)")
+    if config.cells > 4096:
+        raise InputError(f"cells={config.cells} is too large for orbits (at most 4096)")
+    continuation = (None if args.continuation is None
+                    else parse_continuation(args.continuation, config.scene))
+    if mode == "energy" and energy_matrices(config.scene) is None:
+        raise InputError(f"mode energy needs a scene with an energy (linear, K symmetric, "
+                         f"undamped); {config.scene.name} with these parameters has none")
+    comm = _world(comm)
+    dirs = {}
+    for option, value in (("out", args.out), ("plot", args.plot)):
+        if value is not None:
+            from fem_dual.output import check_output_dir_on_root
+
+            dirs[option] = check_output_dir_on_root(comm, value, f"--{option}")
+    status = 0
+    if comm.rank == 0:
+        try:
+            status = _orbit_on_root(args, config, params, mode, energy, continuation, dirs)
+        except InputError as exc:
+            print(f"fem-dual: error: {_one_line(exc)}", file=sys.stderr)
+            status = InputError.exit_status
+        except Exception as exc:  # a bug: say so, and end the ranks that wait for rank 0
+            if comm.size == 1:
+                raise
+            import traceback
+
+            traceback.print_exc()
+            print(f"fem-dual: internal error on rank 0: {_one_line(exc)}", file=sys.stderr)
+            comm.Abort(1)
+    return int(comm.bcast(status, root=0))
+
+
+def _orbit_on_root(args, config, params, mode, energy, continuation, dirs):
+    from fem_dual.orbit import orbit_family, orbit_summary, write_orbit_files
+
+    with _stdout_to_stderr(args.json):
+        try:
+            record = orbit_family(config.scene, params, config.x0, config.v0, config.T,
+                                  config.degree, config.cells, mode, energy, continuation,
+                                  with_estimate=not args.no_estimate)
+        except SolveError as exc:
+            record = {"status": "failed", "message": str(exc), "scene": config.scene.name}
+    problem = write_orbit_files(record, dirs) if record.get("period") is not None else None
+    if problem:
+        record["status"], record["message"] = "failed", problem
+    if args.json:
+        print(json.dumps(record, allow_nan=False), file=_json_out(), flush=True)
+    else:
+        print(orbit_summary(record))
+    if record["status"] != "ok":
+        print(f"fem-dual: no orbit: {_one_line(record['message'])}", file=sys.stderr)
+        return SolveError.exit_status
+    return 0
+
+
 def _stress(args, comm: MPI.Comm) -> int:
     """Exit 0 when every case behaved as it must, 1 when one FAILed."""
     import dataclasses
@@ -466,6 +563,8 @@ def _main(argv: Optional[Sequence[str]], comm: "Optional[MPI.Comm]") -> int:
             if key in params:
                 raise InputError(f"--param {key} is given twice ({params[key]!r} and {value!r})")
             params[key] = value
+        if args.command == "orbit":
+            return _orbit(args, params, comm)
         if args.command in ("bench", "flutter", "stress"):
             comm = _world(comm)
         if args.command == "bench":

@@ -46,6 +46,7 @@ class PointwiseDtP:
                  equations: Callable[[ufl.core.expr.Expr], ufl.core.expr.Expr],
                  time: ufl.core.expr.Expr, inverse_space: Optional[fem.FunctionSpace] = None):
         self.X = fem.Function(space)
+        self.points = points
         self.n = n = space.dofmap.index_map_bs
         xv = ufl.variable(self.X)
         G = equations(xv)

@@ -113,12 +113,16 @@ class SlabProblem:
         """(x^, v^, L_d): the scene's DtP map and the pre-dual Lagrangian evaluated on it."""
         f, c, n = self.scene.forms, self.c, self.n
         args = (self.xi, self.eta, self.dxi, self.deta)
+        damping = self.damping()
+        # the DtP map of M v' + D v + mu M v = F: the velocity map sees eta' - mu eta
+        dtp_args = (self.xi, self.eta, self.dxi, self.deta - self.mu * self.eta
+                    if self.mu is not None else self.deta)
         if self.extra is not None:  # lifted scene: augmented Lagrangian, auxiliary primal
             xhat, vhat, lifted = f.dtp_map(*args, self.xbar, self.vbar, c, self.extra)
             L_d = f.lagrangian(xhat, vhat, lifted, *args, self.extra, self.xbar, self.vbar, c)
             return xhat, vhat, L_d
         if f.dtp == "explicit":
-            xhat, vhat = f.dtp_map(*args, self.xbar, self.vbar, c)
+            xhat, vhat = f.dtp_map(*dtp_args, self.xbar, self.vbar, c)
         else:
             # Newton-linearised DtP map around the pointwise solution X of G(X) = 0 at the
             # quadrature points: x^ = X - G_x(X)^-1 G(X; xi, eta, xi'). Equal to X where G = 0,
@@ -134,10 +138,19 @@ class SlabProblem:
             self.pointwise = PointwiseDtP(Qx, points, self.position_equations, self.time, Qt)
             X, Ginv = self.pointwise.X, self.pointwise.Ginv
             xhat = X - ufl.dot(Ginv, self.position_equations(X))
-            vhat = f.velocity_map(self.xi, self.deta, self.vbar, c)
+            vhat = f.velocity_map(self.xi, dtp_args[3], self.vbar, c)
         L_d = predual_lagrangian(xhat, vhat, *args, c["M"], self.force, self.aux, self.xbar,
-                                 self.vbar, c.get("D"))
+                                 self.vbar, damping)
         return xhat, vhat, L_d
+
+    mu = None  # an unfolding damping -mu M v (fem_dual.orbit); slabs have none
+
+    def damping(self):
+        """The damping matrix D of M v' + D v = F (UFL), or None: the scene's, plus mu M."""
+        D = self.c.get("D")
+        if self.mu is None:
+            return D
+        return self.mu * self.c["M"] if D is None else D + self.mu * self.c["M"]
 
     def position_equations(self, x):
         """G(x; xi, eta, xi') = 0, the implicit position part of the DtP map."""
@@ -162,7 +175,7 @@ class SlabProblem:
             return -ufl.dot(xhat, self.dxi) - ufl.dot(ufl.dot(self.c["M"], vhat), self.deta) \
                 - self.L_d
         return dual_hamiltonian(xhat, vhat, self.xi, self.eta, self.force, self.aux, self.xbar,
-                                self.vbar, self.c.get("D"))
+                                self.vbar, self.damping())
 
     def close(self) -> None:
         """Destroy the PETSc vector of the dual state (solvers made it); collective."""

@@ -1,0 +1,666 @@
+"""Periodic orbits from the dual principle (`fem-dual orbit`).
+
+Time is rescaled, s = t / T on [0, 1]: the slab problem of fem_dual.problem with dt = T, dual
+fields that are periodic (the dofs at s = 1 are those at s = 0) and no initial-condition term.
+Varying the action then gives the equations of motion and x^(1) = x^(0), v^(1) = v^(0) as
+natural conditions. The base state (xbar, vbar)(s) of H is the guess of the orbit; the
+W-weighted integral phase condition against it is what periodic dual fields need to exist, so
+the DtP map fixes the phase by itself, and an exact orbit as base state is solved by zero dual
+fields.
+
+Unknowns besides the dual fields: the period T (stationarity of the action in T), and mu, the
+rate of an unfolding damping -mu M v added to the force (stationarity in mu). M x'' = F(x) is
+reversible, so its symmetric orbits come in one-parameter families, where the system without mu
+is singular; with mu, Newton converges to mu = 0 and the member of the family closest to the
+base state. Modes:
+- "closest": T and mu unknown, the rows dS/dT and dS/dmu (symmetric, indefinite);
+- "period": T held at its guess, mu unknown;
+- "energy": the energy E prescribed, for scenes that have one (linear, K symmetric, undamped).
+  Their orbits of one period form families by amplitude, and the dual Hessian has a
+  two-dimensional kernel there (both phases of the mode), where a bordered energy row stays
+  singular (measured: condition 2e16): the closest orbit is scaled to E, which is exact for a
+  linear system. Nonlinear conservative scenes are not among the scenes yet.
+
+Newton runs on the bordered second variation with the periodic dofs merged (sparse LU); it is
+serial (an orbit's time mesh is small): under MPI rank 0 solves and the others wait.
+
+The multipliers and the closure come from an independent check: DOP853 (rtol = atol = 1e-13)
+integrates the undamped motion and its variational equation from the orbit's start over one
+period; the closure |z(T) - z(0)| says whether the orbit closes, the monodromy's eigenvalues are
+the Floquet multipliers.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Optional, Tuple
+
+import numpy as np
+import ufl
+from dolfinx import fem
+from mpi4py import MPI
+from petsc4py import PETSc
+from scipy import sparse
+from scipy.sparse import linalg as spla
+
+from fem_dual.compat import (CellPointEvaluator, constant, destroy_petsc, quiet_jit_logging,
+                             vector_space)
+from fem_dual.errors import InputError, SolveError
+from fem_dual.problem import SlabProblem
+from fem_dual.recovery import CellMomenta
+from meshes import slab_mesh
+
+__all__ = ["OrbitProblem", "OrbitResult", "solve_orbit", "MODES", "parse_mode"]
+
+MODES = ("closest", "period", "energy")
+NEWTON_MAX_IT = 30
+NEWTON_TOL = 1e-12  # relative Newton step in the period and the dual fields
+NEWTON_STAGNATION = 1e-9  # ... or below this, a step no longer 4x smaller than the last
+CLOSURE_TOL = 1e-6  # closure / max|z| above this: the orbit does not close
+MU_TOL = 1e-6  # |mu| T above this: an orbit of the damped system only
+
+
+def parse_mode(text: str) -> Tuple[str, Optional[float]]:
+    """("closest" | "period" | "energy", E or None) from --mode; InputError naming the value."""
+    from fem_dual.scenes.base import parse_number
+
+    name, sep, value = str(text).partition("=")
+    if name not in MODES or (name == "energy") != bool(sep):
+        raise InputError(f"mode={text!r} is not one of closest, period, energy=E")
+    energy = parse_number("energy", value) if sep else None
+    if energy is not None and not energy > 0:
+        raise InputError(f"energy={value!r} must be positive")
+    return name, energy
+
+
+def energy_matrices(scene) -> Optional[Tuple[np.ndarray, np.ndarray]]:
+    """(M, K) of a scene whose motion keeps E = 1/2 v.M v + 1/2 x.K x (linear, K symmetric,
+    undamped), or None."""
+    if not getattr(scene, "linear", False):
+        return None
+    K, D = scene.stiffness_matrix(), scene.damping_matrix()
+    if np.any(D) or not np.allclose(K, K.T, rtol=0.0, atol=1e-14 * np.abs(K).max()):
+        return None
+    return scene.mass_matrix(), 0.5 * (K + K.T)
+
+
+class OrbitProblem(SlabProblem):
+    """The periodic dual action of one orbit (see the module docstring), with its derivatives in
+    the period T and the unfolding rate mu, compiled once per scene, degree and cells."""
+
+    def __init__(self, scene, degree: int, cells: int, comm: MPI.Comm = MPI.COMM_SELF):
+        if getattr(scene.forms, "extra_dual", 0):
+            raise InputError(f"scene {scene.name} is lifted (extra dual fields); its orbits are "
+                             "those of curl2d: use that scene")
+        self.scene, self.degree, self.comm, self.base = scene, degree, comm, "orbit"
+        self.n = n = scene.n
+        self.mesh = slab_mesh(comm, cells)
+        msh = self.mesh.msh
+        self.W = vector_space(msh, degree, 2 * n)
+        self.w = fem.Function(self.W, name="dual")
+        self.c = {k: constant(msh, v) for k, v in scene.constants().items()}
+        self.T_c, self.mu_c = constant(msh, 1.0), constant(msh, 0.0)
+        T, mu = ufl.variable(self.T_c), ufl.variable(self.mu_c)
+        self.dt, self.mu, self.extra = T, mu, None
+        self.t0 = constant(msh, 0.0)
+        base = vector_space(msh, degree + 1, n)
+        self.xbar, self.vbar = fem.Function(base), fem.Function(base)
+        nodes = fem.FunctionSpace(msh, ("Lagrange", degree + 1))
+        self.base_nodes = nodes.tabulate_dof_coordinates()[:, 0]  # s of the base state's nodes
+        w = self.w
+        self.xi = ufl.as_vector([w[i] for i in range(n)])
+        self.eta = ufl.as_vector([w[n + i] for i in range(n)])
+        self.dxi = ufl.as_vector([w[i].dx(0) for i in range(n)]) / T
+        self.deta = ufl.as_vector([w[n + i].dx(0) for i in range(n)]) / T
+        f, c = scene.forms, self.c
+        self.time = T * ufl.SpatialCoordinate(msh)[0]
+        qdeg = scene.quadrature_degree(degree)
+        self.force = lambda x: f.force(x, c)  # noqa: E731
+        self.aux = lambda dx_, dv_: f.aux_potential(dx_, dv_, c)  # noqa: E731
+        self.pointwise = None
+        self.xhat, self.vhat, self.L_d = self._reduced_lagrangian(qdeg)
+        self.hamiltonian = self.hamiltonian_of(self.xhat, self.vhat)
+        self.dx = ufl.Measure("dx", domain=msh, metadata={"quadrature_degree": qdeg})
+        self.bcs = []
+
+        density = self.L_d * T
+        test, trial = ufl.TestFunction(self.W), ufl.TrialFunction(self.W)
+        self.residual = ufl.derivative(density * self.dx, w, test)
+        self.jacobian = ufl.derivative(self.residual, w, trial)
+        params = {"T": T, "mu": mu}
+        forms: Dict[str, Any] = {"R": self.residual, "J": self.jacobian}
+        for a, va in params.items():
+            first = ufl.diff(density, va)
+            forms[f"S_{a}"] = first * self.dx
+            forms[f"R_{a}"] = ufl.derivative(first * self.dx, w, test)
+            for b, vb in params.items():
+                forms[f"S_{a}{b}"] = ufl.diff(first, vb) * self.dx
+        self.forms = {k: fem.form(v) for k, v in forms.items()}
+        self.momenta = CellMomenta(self)
+        self._periodic = _periodic_merge(self.W, degree)
+        self._base_eval = None
+
+    def set_base(self, z_nodes: np.ndarray) -> None:
+        """The base state from the guess at the base nodes (rows in `base_nodes` order)."""
+        n = self.n
+        self.xbar.x.array.reshape(-1, n)[:] = z_nodes[:, :n]
+        self.vbar.x.array.reshape(-1, n)[:] = z_nodes[:, n:]
+
+    def start_dtp(self) -> None:
+        """An implicit DtP map starts its pointwise Newton from the base state (the DtP image of
+        the zero dual state)."""
+        pw = self.pointwise
+        if pw is None:
+            return
+        if self._base_eval is None:
+            self._base_eval = CellPointEvaluator(ufl.as_vector(list(self.xbar)), pw.points)
+        pw.X.x.array.reshape(-1, self.n)[pw.dofs] = self._base_eval(pw.cells)
+
+    def close(self) -> None:
+        self.momenta.close()
+
+
+def _periodic_merge(W: fem.FunctionSpace, degree: int) -> sparse.csr_matrix:
+    """P (dofs x periodic dofs): the dofs of the node at s = 1 are those of the node at s = 0."""
+    msh = W.mesh
+    s = fem.FunctionSpace(msh, ("Lagrange", degree)).tabulate_dof_coordinates()[:, 0]
+    bs = W.dofmap.index_map_bs
+    first, last = int(np.argmin(s)), int(np.argmax(s))
+    nodes = len(s)
+    node_map = np.arange(nodes)
+    node_map[last] = first
+    keep = np.delete(np.arange(nodes), last)
+    reduced = np.full(nodes, -1)
+    reduced[keep] = np.arange(len(keep))
+    target = reduced[node_map]
+    rows = np.arange(nodes * bs)
+    cols = (target[:, None] * bs + np.arange(bs)).ravel()
+    return sparse.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(nodes * bs, len(keep) * bs))
+
+
+@dataclass
+class OrbitResult:
+    """What `fem-dual orbit` computed (its JSON object)."""
+
+    scene: str
+    parameters: Dict[str, Any]
+    mode: str
+    period: float
+    mu: float
+    t: List[float]
+    x: List[List[float]]
+    v: List[List[float]]
+    multipliers: List[List[float]]
+    closure: float
+    closure_relative: float
+    newton: Dict[str, Any]
+    timings: Dict[str, float]
+    degree: int
+    cells: int
+    guess: Dict[str, Any]
+    status: str = "ok"
+    message: str = ""
+    energy: Optional[float] = None
+    estimate: Dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> Dict[str, Any]:
+        from dataclasses import asdict
+
+        return asdict(self)
+
+
+class OrbitSolver:
+    """Newton on the bordered, periodic dual problem of an OrbitProblem."""
+
+    def __init__(self, problem: OrbitProblem):
+        self.p = problem
+        self.A = fem.petsc.create_matrix(problem.forms["J"])
+        self.vecs = {k: fem.petsc.create_vector(problem.forms[k])
+                     for k in ("R", "R_T", "R_mu")}
+
+    def close(self) -> None:
+        destroy_petsc(self.A, *self.vecs.values())
+        self.p.close()
+
+    def _vector(self, name: str) -> np.ndarray:
+        vec = self.vecs[name]
+        with vec.localForm() as local:
+            local.set(0.0)
+        fem.petsc.assemble_vector(vec, self.p.forms[name])
+        return vec.array_r.copy()
+
+    def _scalar(self, name: str) -> float:
+        return float(fem.assemble_scalar(self.p.forms[name]))
+
+    def _matrix(self) -> sparse.csr_matrix:
+        self.A.zeroEntries()
+        fem.petsc.assemble_matrix(self.A, self.p.forms["J"])
+        self.A.assemble()
+        indptr, indices, data = self.A.getValuesCSR()
+        return sparse.csr_matrix((data, indices, indptr), shape=self.A.getSize())
+
+    def _update_dtp(self) -> None:
+        pointwise = self.p.pointwise
+        if pointwise is not None:
+            message = pointwise.solve(self.p.comm)
+            if message:
+                raise SolveError(message.replace("use smaller slabs or larger alpha",
+                                                 "give a better guess (--period, --x0, --v0)"))
+
+    def system(self, mode: str):
+        """(H, g): the bordered Hessian and gradient in the unknowns of `mode`."""
+        self._update_dtp()
+        P = self.p._periodic
+        J = (P.T @ self._matrix() @ P).tocsr()
+        R = P.T @ self._vector("R")
+        cols = {"T": P.T @ self._vector("R_T"), "mu": P.T @ self._vector("R_mu")}
+        names = ["mu"] if mode == "period" else ["T", "mu"]
+        rows = [sparse.csr_matrix(cols[a][None, :]) for a in names]
+        corner = np.array([[self._scalar(f"S_{a}{b}") for b in names] for a in names])
+        grad = [self._scalar(f"S_{a}") for a in names]
+        H = sparse.bmat([[J, sparse.csr_matrix(np.column_stack([cols[a] for a in names]))],
+                         [sparse.vstack(rows), sparse.csr_matrix(corner)]], format="csc")
+        return H, np.concatenate([R, grad]), names
+
+    def solve(self, mode: str) -> Dict[str, Any]:
+        """Newton from the current state; returns its history. Raises SolveError."""
+        p, P = self.p, self.p._periodic
+        steps: List[float] = []
+        residuals: List[float] = []
+        for it in range(NEWTON_MAX_IT):
+            H, g, names = self.system(mode)
+            residuals.append(float(np.abs(g).max()))
+            if not np.isfinite(g).all():
+                raise SolveError("the orbit's Newton met a non-finite residual; give a better "
+                                 "guess (--period, --x0, --v0)")
+            try:
+                with np.errstate(all="raise"):
+                    delta = spla.spsolve(H, -g)
+            except (RuntimeError, FloatingPointError) as exc:
+                raise SolveError(f"the orbit's Newton system is singular ({exc}); the orbit is "
+                                 "not isolated in this mode, or the guess is too far") from exc
+            if not np.isfinite(delta).all():
+                raise SolveError("the orbit's Newton system is singular; the orbit is not "
+                                 "isolated in this mode, or the guess is too far")
+            k = len(names)
+            dw = P @ delta[:-k]
+            p.w.x.array[:] += dw
+            T = float(p.T_c.value)
+            for name, d in zip(names, delta[-k:]):
+                target = p.T_c if name == "T" else p.mu_c
+                target.value = float(target.value) + d
+            if not float(p.T_c.value) > 0:
+                raise SolveError(f"the period went to {float(p.T_c.value):.6g} in Newton; give a "
+                                 "better guess (--period)")
+            w_scale = max(float(np.abs(p.w.x.array).max()), 1e-300)
+            step = max(float(np.abs(dw).max()) / w_scale if np.abs(dw).max() > 0 else 0.0,
+                       abs(delta[-k]) / T if "T" in names else 0.0)
+            # converged: a step at the tolerance, or steps that stopped shrinking (round-off)
+            stagnant = bool(steps) and step > 0.25 * steps[-1] and step <= NEWTON_STAGNATION
+            steps.append(step)
+            if step <= NEWTON_TOL or stagnant:
+                self._update_dtp()
+                return {"iterations": it + 1, "steps": steps, "residuals": residuals}
+        raise SolveError(f"the orbit's Newton did not converge in {NEWTON_MAX_IT} iterations "
+                         f"(last relative step {steps[-1]:.3g}); give a better guess (--period, "
+                         "--x0, --v0) or a smaller continuation step")
+
+    def orbit_vertices(self) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(s, x, v) at the vertices from s = 0 to 1 (the momenta of the cells, averaged)."""
+        p, n = self.p, self.p.n
+        ends = p.momenta()  # (cells, 2, 2n)
+        msh = p.mesh.msh
+        cells = msh.topology.index_map(1).size_local
+        vertices = msh.geometry.dofmap.array.reshape(-1, 2)[:cells]
+        s_cells = msh.geometry.x[vertices, 0]
+        s = np.unique(s_cells.round(15))
+        index = np.searchsorted(s, s_cells.round(15))
+        sums = np.zeros((len(s), 2 * n))
+        counts = np.zeros(len(s))
+        np.add.at(sums, index.ravel(), ends.reshape(-1, 2 * n))
+        np.add.at(counts, index.ravel(), 1.0)
+        sums[0] += sums[-1]  # periodic: s = 0 and s = 1 are one point
+        counts[0] += counts[-1]
+        sums[-1], counts[-1] = sums[0], counts[0]
+        z = sums / counts[:, None]
+        M = p.c["M"].value
+        v = np.linalg.solve(M, z[:, n:].T).T
+        return s, z[:, :n], v
+
+
+def _rhs_and_jacobian(scene):
+    """(f, J): z' = f(z) for the undamped... scene's motion, and its Jacobian."""
+    n = scene.n
+    M = scene.mass_matrix()
+    if scene.linear:
+        from fem_dual.scenes.linear import first_order_matrix
+
+        A = first_order_matrix(M, scene.stiffness_matrix(), scene.damping_matrix())
+        return (lambda z: A @ z), (lambda z: A)
+    Minv = np.linalg.inv(M)
+
+    def f(z):
+        return np.concatenate([z[n:], Minv @ scene.force_numpy(z[:n])])
+
+    def jac(z):
+        x = z[:n]
+        h = 1e-3 * max(1.0, float(np.abs(x).max()))
+        DF = np.empty((n, n))
+        for j in range(n):  # fourth-order central differences (exact for cubic forces)
+            e = np.zeros(n)
+            e[j] = h
+            DF[:, j] = (8 * (scene.force_numpy(x + e) - scene.force_numpy(x - e))
+                        - (scene.force_numpy(x + 2 * e) - scene.force_numpy(x - 2 * e))) / (12 * h)
+        A = np.zeros((2 * n, 2 * n))
+        A[:n, n:] = np.eye(n)
+        A[n:, :n] = Minv @ DF
+        return A
+
+    return f, jac
+
+
+def monodromy(scene, z0: np.ndarray, T: float) -> Tuple[np.ndarray, np.ndarray]:
+    """(z(T), Phi(T)): DOP853 at rtol = atol = 1e-13 on the motion and its variational
+    equation from z0 over [0, T]."""
+    from scipy.integrate import solve_ivp
+
+    f, jac = _rhs_and_jacobian(scene)
+    m = len(z0)
+
+    def rhs(_t, y):
+        z, Phi = y[:m], y[m:].reshape(m, m)
+        return np.concatenate([f(z), (jac(z) @ Phi).ravel()])
+
+    y0 = np.concatenate([z0, np.eye(m).ravel()])
+    sol = solve_ivp(rhs, (0.0, T), y0, method="DOP853", rtol=1e-13, atol=1e-13)
+    if not sol.success:
+        raise SolveError(f"the check of the orbit by DOP853 failed: {sol.message}")
+    y = sol.y[:, -1]
+    return y[:m], y[m:].reshape(m, m)
+
+
+def guess_motion(scene, x0: np.ndarray, v0: np.ndarray, T0: float, times: np.ndarray,
+                 degree: int) -> np.ndarray:
+    """The motion from (x0, v0) at `times` in [0, T0], by fem-dual (--rtol 1e-9)."""
+    from fem_dual.config import RunConfig
+    from fem_dual.driver import Simulation
+
+    config = RunConfig.create(scene, T=T0, x0=x0, v0=v0, cells=4, degree=max(degree, 4),
+                              rtol=1e-9, reference="none")
+    sim = Simulation.for_config(config, MPI.COMM_SELF)
+    try:
+        result = sim.run(config)
+    finally:
+        sim.close()
+    if result.status != "ok":
+        raise SolveError(f"the guess (the motion from x0, v0 over {T0:g}) failed: "
+                         f"{result.message}")
+    x, v = result.at(times)
+    return np.hstack([x, v])
+
+
+class Orbits:
+    """Compiled orbit problems of one scene kind, degree and cells; solves orbits and families."""
+
+    def __init__(self, scene, degree: int, cells: int):
+        tic = time.perf_counter()
+        with quiet_jit_logging():
+            self.problem = OrbitProblem(scene, degree, cells)
+            self.solver = OrbitSolver(self.problem)
+        self.compile_s = time.perf_counter() - tic
+        self.scene = scene
+
+    def close(self) -> None:
+        self.solver.close()
+
+    def solve(self, scene, x0: np.ndarray, v0: np.ndarray, T0: float, mode: str = "closest",
+              energy: Optional[float] = None, check: bool = True) -> OrbitResult:
+        """The orbit near the motion from (x0, v0) over T0. Raises SolveError."""
+        p = self.problem
+        matrices = energy_matrices(scene)
+        if mode == "energy" and matrices is None:
+            raise InputError(f"mode energy needs a scene with an energy (linear, K symmetric, "
+                             f"undamped); {scene.name} has none")
+        if scene is not self.scene:
+            p.set_scene_constants(scene)
+            self.scene = scene
+        tic = time.perf_counter()
+        p.set_base(guess_motion(scene, x0, v0, T0, T0 * p.base_nodes, p.degree))
+        guess_s = time.perf_counter() - tic
+        tic = time.perf_counter()
+        p.w.x.array[:] = 0.0
+        p.T_c.value, p.mu_c.value = T0, 0.0
+        p.start_dtp()
+        history = self.solver.solve("closest" if mode == "energy" else mode)
+        s, x, v = self.solver.orbit_vertices()
+        if matrices is not None:
+            M, K = matrices
+            orbit_energy = 0.5 * float(v[0] @ M @ v[0] + x[0] @ K @ x[0])
+            if mode == "energy":  # a linear family at one period: the amplitude sets E
+                if not orbit_energy > 0:
+                    raise SolveError("the orbit found has no energy to scale to E")
+                scale = np.sqrt(energy / orbit_energy)
+                x, v, orbit_energy = x * scale, v * scale, energy
+        solve_s = time.perf_counter() - tic
+        T, mu = float(p.T_c.value), float(p.mu_c.value)
+        tic = time.perf_counter()
+        z0 = np.concatenate([x[0], v[0]])
+        zT, Phi = monodromy(scene, z0, T) if check else (z0, np.eye(len(z0)))
+        check_s = time.perf_counter() - tic
+        closure = float(np.abs(zT - z0).max())
+        scale = float(np.abs(np.hstack([x, v])).max())
+        lam = np.linalg.eigvals(Phi)
+        lam = lam[np.lexsort((lam.imag, -np.abs(lam)))]
+        result = OrbitResult(
+            scene=scene.name, parameters=scene.parameters(), mode=mode, period=T, mu=mu,
+            t=list(T * s), x=x.tolist(), v=v.tolist(),
+            multipliers=[[float(z.real), float(z.imag)] for z in lam],
+            closure=closure, closure_relative=closure / scale if scale > 0 else closure,
+            newton=history, timings={"compile_s": self.compile_s, "guess_s": guess_s,
+                                     "solve_s": solve_s, "check_s": check_s},
+            degree=p.degree, cells=p.mesh.cells,
+            guess={"x0": list(map(float, x0)), "v0": list(map(float, v0)), "period": T0},
+            energy=orbit_energy if matrices is not None else None)
+        if check and not abs(mu) * T <= MU_TOL:
+            result.status = "failed"
+            result.message = (f"the unfolding damping converged to mu = {mu:.3g}, not 0: the "
+                              "guess is near no orbit of the undamped system (past flutter, or "
+                              "a motion that is not periodic); give a better guess")
+        elif check and not result.closure_relative <= CLOSURE_TOL:
+            result.status = "failed"
+            result.message = (f"the orbit does not close: |z(T) - z(0)| = {closure:.3g} "
+                              f"({result.closure_relative:.3g} relative) by DOP853 from its start; "
+                              "raise --cells or --degree, or give a better guess")
+        return result
+
+
+def parse_continuation(text: str, scene) -> Tuple[str, np.ndarray]:
+    """(NAME, values) from NAME=a:b:steps (steps + 1 values from a to b); InputError naming the
+    bad piece. NAME must be a number parameter of the scene."""
+    from fem_dual.scenes.base import parse_number
+
+    name, sep, rng = str(text).partition("=")
+    name = name.strip()
+    parts = rng.split(":")
+    if not sep or len(parts) != 3:
+        raise InputError(f"--continue {text!r} is not NAME=START:STOP:STEPS")
+    if name not in type(scene).parameter_names() or not isinstance(getattr(scene, name, None),
+                                                                    (int, float)):
+        raise InputError(f"--continue {name!r} is not a number parameter of {scene.name} "
+                         f"(those are: {', '.join(_number_parameters(scene))})")
+    a, b = parse_number("continuation start", parts[0]), parse_number("continuation stop",
+                                                                       parts[1])
+    steps = parse_number("continuation steps", parts[2])
+    if not (steps >= 1 and steps == int(steps) and steps <= 10_000):
+        raise InputError(f"continuation steps={parts[2]!r} must be a whole number in 1..10000")
+    if a == b:
+        raise InputError(f"--continue {text!r}: start and stop are equal")
+    return name, np.linspace(a, b, int(steps) + 1)
+
+
+def _number_parameters(scene) -> List[str]:
+    return [k for k in type(scene).parameter_names()
+            if isinstance(getattr(scene, k, None), (int, float))]
+
+
+def estimate(orbits_p1: "Orbits", scene, result: OrbitResult, mode: str,
+             energy: Optional[float]) -> Dict[str, Any]:
+    """The orbit's error estimated without a reference: the same orbit with degree p + 1, from
+    the same guess; the differences in the period and the multipliers."""
+    g = result.guess
+    other = orbits_p1.solve(scene, np.array(g["x0"]), np.array(g["v0"]), g["period"], mode,
+                            energy, check=False)
+    return {"period": abs(other.period - result.period),
+            "state": float(np.abs(np.hstack([np.array(other.x) - np.array(result.x),
+                                             np.array(other.v) - np.array(result.v)])).max()),
+            "degree": orbits_p1.problem.degree}
+
+
+def orbit_family(scene, params: Dict[str, Any], x0: np.ndarray, v0: np.ndarray, T0: float,
+                 degree: int, cells: int, mode: str = "closest", energy: Optional[float] = None,
+                 continuation: Optional[Tuple[str, np.ndarray]] = None,
+                 with_estimate: bool = True) -> Dict[str, Any]:
+    """One orbit (`continuation` None) or a family along a parameter, each orbit started from
+    the previous one. Returns the JSON object; its "status" is "ok" or "failed" (with
+    "message"), what was computed before a failure kept."""
+    from fem_dual.config import _scene
+
+    orbits = Orbits(scene, degree, cells)
+    companion = Orbits(scene, degree + 1, cells) if with_estimate else None
+    out: Dict[str, Any] = {}
+    steps: List[Dict[str, Any]] = []
+    try:
+        values = [None] if continuation is None else continuation[1]
+        for k, value in enumerate(values):
+            member = scene if value is None else _scene(scene.name, {**params,
+                                                                     continuation[0]: value})
+            try:
+                result = orbits.solve(member, x0, v0, T0, mode, energy)
+                if companion is not None and result.status == "ok":
+                    result.estimate = estimate(companion, member, result, mode, energy)
+            except SolveError as exc:
+                if continuation is None or not steps:
+                    raise
+                out["status"], out["message"] = "failed", (
+                    f"continuation stopped at {continuation[0]}={value:.6g} (last orbit at "
+                    f"{continuation[0]}={values[k - 1]:.6g}): {exc}; a smaller step may pass "
+                    "it, or this is a fold or bifurcation")
+                break
+            record = result.to_dict()
+            if continuation is None:
+                out.update(record)
+                break
+            steps.append({continuation[0]: float(value), **{
+                key: record[key] for key in ("period", "mu", "multipliers", "closure",
+                                             "closure_relative", "energy", "estimate", "status",
+                                             "message", "newton", "timings")}})
+            out.update(record)  # the last orbit in full
+            if result.status != "ok":
+                out["message"] = (f"continuation stopped at {continuation[0]}={value:.6g}: "
+                                  f"{result.message}")
+                break
+            x0, v0, T0 = np.array(result.x[0]), np.array(result.v[0]), result.period
+    finally:
+        orbits.close()
+        if companion is not None:
+            companion.close()
+    if continuation is not None:
+        out["continuation"] = steps
+        out["continuation_parameter"] = continuation[0]
+        out.setdefault("status", "ok")
+    return out
+
+
+def orbit_summary(record: Dict[str, Any]) -> str:
+    """The text `fem-dual orbit` prints (the JSON holds everything)."""
+    if record.get("period") is None:
+        return f"{record.get('scene', '')}: no orbit ({record.get('status')})"
+    lines = []
+    for step in record.get("continuation", []):
+        name = record["continuation_parameter"]
+        mods = ", ".join(f"{abs(complex(*m)):.6g}" for m in step["multipliers"])
+        lines.append(f"{name} = {step[name]:<10.6g} period {step['period']:.12g}  "
+                     f"|multipliers| {mods}  closure {step['closure']:.2g}")
+    est = record.get("estimate") or {}
+    mult = ", ".join(f"{re:.10g}{im:+.10g}i" for re, im in record["multipliers"])
+    lines += [f"{record['scene']}: periodic orbit ({record['mode']}), p = {record['degree']}, "
+              f"{record['cells']} cells",
+              f"  period     {record['period']:.15g}" + (
+                  f"  (estimated error {est['period']:.2g})" if "period" in est else ""),
+              f"  mu         {record['mu']:.3g}",
+              f"  x(0)       {record['x'][0]}",
+              f"  v(0)       {record['v'][0]}",
+              f"  multipliers {mult}",
+              f"  closure    {record['closure']:.3g} (DOP853 over one period from x(0), v(0))",
+              f"  Newton     {record['newton']['iterations']} iterations; solve "
+              f"{record['timings']['solve_s'] * 1e3:.1f} ms"]
+    if record.get("energy") is not None:
+        lines.append(f"  energy     {record['energy']:.15g}")
+    return "\n".join(lines)
+
+
+def write_orbit_files(record: Dict[str, Any], dirs: Dict[str, Any]) -> Optional[str]:
+    """orbit.json and orbit.csv into dirs["out"], orbit.png (and continuation.png) into
+    dirs["plot"]; the reason a write failed, or None."""
+    import json
+    from pathlib import Path
+
+    try:
+        if dirs.get("out") is not None:
+            out = Path(dirs["out"])
+            (out / "orbit.json").write_text(json.dumps(record, allow_nan=False) + "\n")
+            n = len(record["x"][0])
+            head = ",".join(["t"] + [f"x{i + 1}" for i in range(n)] + [f"v{i + 1}" for i in
+                                                                       range(n)])
+            table = np.column_stack([record["t"], record["x"], record["v"]])
+            np.savetxt(out / "orbit.csv", table, delimiter=",", header=head, comments="",
+                       fmt="%.17g")
+        if dirs.get("plot") is not None:
+            plot_orbit(record, Path(dirs["plot"]))
+    except OSError as exc:
+        return f"writing the output failed: {exc}"
+    return None
+
+
+def plot_orbit(record: Dict[str, Any], directory) -> List[Any]:
+    """orbit.png: the orbit against t and its projection on (x1, x2) or (x, v); with a
+    continuation, continuation.png: the period and the multipliers' moduli along it."""
+    from pathlib import Path
+
+    from fem_dual.plots import _axes, _save
+
+    directory = Path(directory)
+    t, x, v = (np.array(record[k]) for k in ("t", "x", "v"))
+    n = x.shape[1]
+    plt, fig, axes = _axes(1, 10.0)
+    fig.clf()
+    left, right = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
+    for i in range(n):
+        left.plot(t, x[:, i], label=f"x{i + 1}")
+    left.set_xlabel("t")
+    left.set_title(f"{record['scene']}: period {record['period']:.10g}")
+    left.legend(fontsize="small")
+    if n >= 2:
+        right.plot(x[:, 0], x[:, 1])
+        right.set_xlabel("x1")
+        right.set_ylabel("x2")
+    else:
+        right.plot(x[:, 0], v[:, 0])
+        right.set_xlabel("x")
+        right.set_ylabel("v")
+    right.set_title("orbit")
+    paths = [_save(plt, fig, directory / "orbit.png")]
+    steps = record.get("continuation")
+    if steps:
+        name = record["continuation_parameter"]
+        plt, fig, axes = _axes(2)
+        p = [s[name] for s in steps]
+        axes[0].plot(p, [s["period"] for s in steps], "o-")
+        axes[0].set_ylabel("period")
+        moduli = np.array([[abs(complex(*m)) for m in s["multipliers"]] for s in steps])
+        for j in range(moduli.shape[1]):
+            axes[1].plot(p, moduli[:, j], ".-")
+        axes[1].set_ylabel("|multiplier|")
+        axes[1].set_xlabel(name)
+        paths.append(_save(plt, fig, directory / "continuation.png"))
+    return paths
