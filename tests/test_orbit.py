@@ -1,0 +1,181 @@
+"""`fem-dual orbit`: periods against exact ones, orders per degree, closure by an independent
+integration, the command line's statuses, and rank-independence under MPI."""
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import scipy.linalg as sla
+from mpi4py import MPI
+from scipy.integrate import solve_ivp
+
+from fem_dual.cli import main
+from fem_dual.config import _scene
+from fem_dual.orbit import Orbits
+
+FEM_DUAL = [sys.executable, "-m", "fem_dual.cli"]
+CURL = {"F": "-x - 0.5*y**2, -2*y - 0.5*x**2"}  # a curl force: dFy/dx - dFx/dy = y - x
+
+
+def ziegler_modes(params=None):
+    """(omega, shapes) of Ziegler's column from the pencil (K, M), slowest first."""
+    scene = _scene("ziegler", params or {})
+    lam, V = sla.eig(scene.stiffness_matrix(), scene.mass_matrix())
+    order = np.argsort(lam.real)
+    return scene, np.sqrt(lam.real[order]), V.real[:, order]
+
+
+@pytest.fixture(scope="module")
+def ziegler_orbits():
+    scene = _scene("ziegler", {})
+    orbits = Orbits(scene, 4, 64)
+    yield orbits
+    orbits.close()
+
+
+@pytest.mark.parametrize("mode", [0, 1])
+def test_ziegler_mode_periods_are_two_pi_over_omega(ziegler_orbits, mode):
+    scene, omega, shapes = ziegler_modes()
+    exact = 2 * np.pi / omega[mode]
+    x0 = 0.1 * shapes[:, mode] / np.abs(shapes[:, mode]).max()
+    r = ziegler_orbits.solve(scene, x0, np.zeros(2), 1.05 * exact)
+    assert r.status == "ok", r.message
+    assert abs(r.period - exact) <= 1e-12 * exact
+    assert abs(r.mu) <= 1e-12
+    # the other mode turns by omega_other T in one period: multipliers exp(+-i omega_other T)
+    other = omega[1 - mode] * r.period
+    lam = sorted((complex(*m) for m in r.multipliers), key=lambda z: abs(z - 1))[2:]
+    assert sorted(z.imag for z in lam) == pytest.approx(sorted([-np.sin(other), np.sin(other)]),
+                                                        abs=1e-9)
+    assert all(z.real == pytest.approx(np.cos(other), abs=1e-9) for z in lam)
+
+
+def _period_errors(scene, x0, T0, degree, cells_list, exact):
+    errors, closures = [], []
+    for cells in cells_list:
+        orbits = Orbits(scene, degree, cells)
+        try:
+            r = orbits.solve(scene, x0, np.zeros(scene.n), T0)
+        finally:
+            orbits.close()
+        errors.append(abs(r.period - exact))
+        closures.append(r.closure)
+    return np.array(errors), np.array(closures)
+
+
+@pytest.mark.parametrize("degree", [2, 3])
+def test_period_and_closure_converge_at_order_2p(degree):
+    """Ziegler's slow mode (exact period) and the curl force's orbit (period of p = 6, 64
+    cells): the period and the closure of the orbit's start converge at order 2p."""
+    scene, omega, shapes = ziegler_modes()
+    exact = 2 * np.pi / omega[0]
+    x0 = 0.1 * shapes[:, 0] / np.abs(shapes[:, 0]).max()
+    errors, closures = _period_errors(scene, x0, 1.05 * exact, degree, [32, 64], exact)
+    assert np.log2(errors[0] / errors[1]) == pytest.approx(2 * degree, abs=0.5)
+    assert np.log2(closures[0] / closures[1]) >= 2 * degree - 0.5
+    force = _scene("force", CURL)
+    fine = Orbits(force, 6, 64)
+    try:
+        reference = fine.solve(force, np.array([0.3, 0.0]), np.zeros(2), 6.3).period
+    finally:
+        fine.close()
+    errors, closures = _period_errors(force, np.array([0.3, 0.0]), 6.3, degree, [16, 32],
+                                      reference)
+    assert np.log2(errors[0] / errors[1]) == pytest.approx(2 * degree, abs=0.5)
+    assert np.log2(closures[0] / closures[1]) >= 2 * degree - 0.5
+
+
+def test_a_nonlinear_orbit_closes_under_an_independent_integration():
+    force = _scene("force", CURL)
+    orbits = Orbits(force, 4, 64)
+    try:
+        r = orbits.solve(force, np.array([0.3, 0.0]), np.zeros(2), 6.3)
+    finally:
+        orbits.close()
+    assert r.status == "ok" and r.newton["iterations"] <= 8
+    z0 = np.concatenate([r.x[0], r.v[0]])
+
+    def rhs(_t, z):
+        x, y = z[:2]
+        return [z[2], z[3], -x - 0.5 * y ** 2, -2 * y - 0.5 * x ** 2]
+
+    end = solve_ivp(rhs, (0, r.period), z0, method="DOP853", rtol=1e-13, atol=1e-13).y[:, -1]
+    assert np.abs(end - z0).max() <= 1e-11
+    # an orbit, not a point: it moves, and returns only after the period
+    half = solve_ivp(rhs, (0, r.period / 2), z0, method="DOP853", rtol=1e-13, atol=1e-13).y[:, -1]
+    assert np.abs(half - z0).max() > 0.1
+    # reversible and volume preserving: the multipliers come as lambda, 1/lambda, product 1
+    lam = np.array([complex(*m) for m in r.multipliers])
+    assert abs(np.prod(lam) - 1) <= 1e-9
+    assert np.sort(np.abs(lam)) == pytest.approx(np.ones(4), abs=1e-8)
+
+
+def _cli(args, tmp_path):
+    return subprocess.run(FEM_DUAL + ["orbit", *args], capture_output=True, text=True,
+                          stdin=subprocess.DEVNULL, cwd=tmp_path)
+
+
+@pytest.mark.parametrize("args, named", [
+    (["nosuch", "--period", "6"], "nosuch"),
+    (["ziegler", "--period", "-1"], "period"),
+    (["ziegler", "--period", "nan"], "nan"),
+    (["ziegler", "--period", "6", "--mode", "sideways"], "sideways"),
+    (["ziegler", "--period", "6", "--mode", "energy=1"], "energy"),
+    (["ziegler", "--param", "P=0", "--period", "6", "--mode", "energy=-1"], "-1"),
+    (["curl3d", "--period", "6", "--mode", "energy=1"], "energy"),
+    (["ziegler", "--period", "6", "--continue", "Q=0:1:3"], "Q"),
+    (["ziegler", "--period", "6", "--continue", "P=0:1:0"], "steps"),
+    (["ziegler", "--period", "6", "--continue", "P=0:1"], "P=0:1"),
+    (["ziegler", "--period", "6", "--x0", "1,2,3"], "x0"),
+    (["ziegler", "--period", "6", "--cells", "0"], "cells"),
+    (["ziegler", "--period", "6", "--degree", "0"], "degree"),
+    (["curl2d-lifted", "--period", "6"], "curl2d"),
+])
+def test_bad_input_is_one_line_and_exit_2(tmp_path, args, named):
+    proc = _cli(args, tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and named in lines[0] and "Traceback" not in proc.stderr
+
+
+def test_no_orbit_past_flutter_is_exit_3_with_the_reason(tmp_path):
+    proc = _cli(["ziegler", "--param", "P=3", "--x0", "0.1,0.16", "--period", "10", "--json",
+                 "--cells", "16", "--no-estimate"], tmp_path)
+    assert proc.returncode == 3
+    record = json.loads(proc.stdout)
+    assert record["status"] == "failed" and record["message"]
+    assert "no orbit" in proc.stderr
+
+
+def test_continuation_follows_the_mode_to_flutter_and_stops_there(tmp_path):
+    proc = _cli(["ziegler", "--x0", "0.1,0.16", "--period", "13", "--cells", "32",
+                 "--continue", "P=1.6:2.2:3", "--json", "--no-estimate", "--out", "o",
+                 "--plot", "p"], tmp_path)
+    assert proc.returncode == 3, proc.stderr
+    record = json.loads(proc.stdout)
+    steps = record["continuation"]
+    assert [s["P"] for s in steps[:3]] == pytest.approx([1.6, 1.8, 2.0])
+    for step in steps[:3]:  # each equals the slow mode's period at its load
+        _, omega, _ = ziegler_modes({"P": step["P"]})
+        assert step["status"] == "ok"
+        assert step["period"] == pytest.approx(2 * np.pi / omega[0], rel=1e-9)
+    assert "P=2.2" in record["message"]  # Ziegler's flutter load is 2.09 for these parameters
+    assert (tmp_path / "o" / "orbit.json").is_file() and (tmp_path / "p" / "continuation.png").is_file()
+
+
+@pytest.mark.mpi
+def test_orbit_under_mpi_equals_serial(tmp_path_factory, capsys):
+    comm = MPI.COMM_WORLD
+    args = ["orbit", "force", "--F", CURL["F"], "--x0", "0.3,0", "--period", "6.3", "--cells",
+            "16", "--json", "--no-estimate"]
+    status = main(args, comm)
+    out = capsys.readouterr().out
+    assert status == 0 and comm.allreduce(status) == 0
+    if comm.rank == 0:
+        record = json.loads(out)
+        assert record["period"] == pytest.approx(6.28318741330, rel=1e-10)
+    else:
+        assert out == ""
+    serial = main(args, MPI.COMM_SELF)
+    assert serial == 0
