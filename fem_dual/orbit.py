@@ -54,7 +54,7 @@ __all__ = ["OrbitProblem", "OrbitResult", "solve_orbit", "MODES", "parse_mode"]
 
 MODES = ("closest", "period", "energy")
 NEWTON_MAX_IT = 30
-NEWTON_TOL = 1e-12  # relative Newton step in the period and the dual fields
+NEWTON_TOL = 1e-12  # Newton step: relative change of the orbit's vertex states and period
 NEWTON_STAGNATION = 1e-9  # ... or below this, a step no longer 4x smaller than the last
 CLOSURE_TOL = 1e-6  # closure / max|z| above this: the orbit does not close
 MU_TOL = 1e-6  # |mu| T above this: an orbit of the damped system only
@@ -191,6 +191,7 @@ class OrbitResult:
     x: List[List[float]]
     v: List[List[float]]
     multipliers: List[List[float]]
+    nontrivial_multipliers: List[List[float]]  # without the pair at 1 (flow and family)
     closure: float
     closure_relative: float
     newton: Dict[str, Any]
@@ -267,6 +268,8 @@ class OrbitSolver:
         p, P = self.p, self.p._periodic
         steps: List[float] = []
         residuals: List[float] = []
+        self._update_dtp()
+        z_last = np.hstack(self.orbit_vertices()[1:])
         for it in range(NEWTON_MAX_IT):
             H, g, names = self.system(mode)
             residuals.append(float(np.abs(g).max()))
@@ -292,9 +295,15 @@ class OrbitSolver:
             if not float(p.T_c.value) > 0:
                 raise SolveError(f"the period went to {float(p.T_c.value):.6g} in Newton; give a "
                                  "better guess (--period)")
-            w_scale = max(float(np.abs(p.w.x.array).max()), 1e-300)
-            step = max(float(np.abs(dw).max()) / w_scale if np.abs(dw).max() > 0 else 0.0,
+            z = np.hstack(self.orbit_vertices()[1:])
+            scale = float(np.abs(z).max())
+            if not np.isfinite(z).all() or not scale > 0:
+                raise SolveError("the orbit's Newton left the orbit (a non-finite or zero "
+                                 "state); give a better guess (--period, --x0, --v0)")
+            # the step: how far the orbit (its vertex states) and the period moved
+            step = max(float(np.abs(z - z_last).max()) / scale,
                        abs(delta[-k]) / T if "T" in names else 0.0)
+            z_last = z
             # converged: a step at the tolerance, or steps that stopped shrinking (round-off)
             stagnant = bool(steps) and step > 0.25 * steps[-1] and step <= NEWTON_STAGNATION
             steps.append(step)
@@ -455,6 +464,8 @@ class Orbits:
             scene=scene.name, parameters=scene.parameters(), mode=mode, period=T, mu=mu,
             t=list(T * s), x=x.tolist(), v=v.tolist(),
             multipliers=[[float(z.real), float(z.imag)] for z in lam],
+            nontrivial_multipliers=[[float(z.real), float(z.imag)] for z in
+                                    sorted(lam, key=lambda z: abs(z - 1))[2:]],
             closure=closure, closure_relative=closure / scale if scale > 0 else closure,
             newton=history, timings={"compile_s": self.compile_s, "guess_s": guess_s,
                                      "solve_s": solve_s, "check_s": check_s},
@@ -484,8 +495,7 @@ def parse_continuation(text: str, scene) -> Tuple[str, np.ndarray]:
     parts = rng.split(":")
     if not sep or len(parts) != 3:
         raise InputError(f"--continue {text!r} is not NAME=START:STOP:STEPS")
-    if name not in type(scene).parameter_names() or not isinstance(getattr(scene, name, None),
-                                                                    (int, float)):
+    if name not in _number_parameters(scene):
         raise InputError(f"--continue {name!r} is not a number parameter of {scene.name} "
                          f"(those are: {', '.join(_number_parameters(scene))})")
     a, b = parse_number("continuation start", parts[0]), parse_number("continuation stop",
@@ -499,8 +509,9 @@ def parse_continuation(text: str, scene) -> Tuple[str, np.ndarray]:
 
 
 def _number_parameters(scene) -> List[str]:
-    return [k for k in type(scene).parameter_names()
-            if isinstance(getattr(scene, k, None), (int, float))]
+    """The scene's parameters that are one number (a user force's own ones included)."""
+    return [k for k, v in scene.parameters().items()
+            if isinstance(v, (int, float, np.floating)) and not isinstance(v, bool)]
 
 
 def estimate(orbits_p1: "Orbits", scene, result: OrbitResult, mode: str,
@@ -551,7 +562,8 @@ def orbit_family(scene, params: Dict[str, Any], x0: np.ndarray, v0: np.ndarray, 
                 out.update(record)
                 break
             steps.append({continuation[0]: float(value), **{
-                key: record[key] for key in ("period", "mu", "multipliers", "closure",
+                key: record[key] for key in ("period", "mu", "multipliers",
+                                             "nontrivial_multipliers", "closure",
                                              "closure_relative", "energy", "estimate", "status",
                                              "message", "newton", "timings")}})
             out.update(record)  # the last orbit in full
@@ -578,11 +590,11 @@ def orbit_summary(record: Dict[str, Any]) -> str:
     lines = []
     for step in record.get("continuation", []):
         name = record["continuation_parameter"]
-        mods = ", ".join(f"{abs(complex(*m)):.6g}" for m in step["multipliers"])
+        mods = ", ".join(f"{abs(complex(*m)):.6g}" for m in step["nontrivial_multipliers"])
         lines.append(f"{name} = {step[name]:<10.6g} period {step['period']:.12g}  "
                      f"|multipliers| {mods}  closure {step['closure']:.2g}")
     est = record.get("estimate") or {}
-    mult = ", ".join(f"{re:.10g}{im:+.10g}i" for re, im in record["multipliers"])
+    mult = ", ".join(f"{re:.10g}{im:+.10g}i" for re, im in record["nontrivial_multipliers"])
     lines += [f"{record['scene']}: periodic orbit ({record['mode']}), p = {record['degree']}, "
               f"{record['cells']} cells",
               f"  period     {record['period']:.15g}" + (
@@ -590,7 +602,7 @@ def orbit_summary(record: Dict[str, Any]) -> str:
               f"  mu         {record['mu']:.3g}",
               f"  x(0)       {record['x'][0]}",
               f"  v(0)       {record['v'][0]}",
-              f"  multipliers {mult}",
+              f"  multipliers {mult} (and the pair at 1)",
               f"  closure    {record['closure']:.3g} (DOP853 over one period from x(0), v(0))",
               f"  Newton     {record['newton']['iterations']} iterations; solve "
               f"{record['timings']['solve_s'] * 1e3:.1f} ms"]
@@ -657,7 +669,8 @@ def plot_orbit(record: Dict[str, Any], directory) -> List[Any]:
         p = [s[name] for s in steps]
         axes[0].plot(p, [s["period"] for s in steps], "o-")
         axes[0].set_ylabel("period")
-        moduli = np.array([[abs(complex(*m)) for m in s["multipliers"]] for s in steps])
+        moduli = np.array([[abs(complex(*m)) for m in s["nontrivial_multipliers"]]
+                           for s in steps])
         for j in range(moduli.shape[1]):
             axes[1].plot(p, moduli[:, j], ".-")
         axes[1].set_ylabel("|multiplier|")
