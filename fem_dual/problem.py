@@ -45,16 +45,19 @@ class SlabProblem:
         degree: polynomial degree of the dual fields.
         cells: number of time cells per slab.
         comm: communicator the time mesh is distributed over.
+        base: the base state of H (BASES).
+        mesh: a slab mesh of `cells` cells to share (the error companion uses its partner's,
+            so that its Newton can start from the partner's solution).
     """
 
     def __init__(self, scene: Scene, degree: int, cells: int, comm: MPI.Comm = MPI.COMM_WORLD,
-                 base: str = "start"):
+                 base: str = "start", mesh=None):
         if base not in BASES:
             raise ValueError(f"base={base!r} is not one of {BASES}")
         self.scene, self.degree, self.comm, self.base = scene, degree, comm, base
         n = scene.n
         self.n = n
-        self.mesh = slab_mesh(comm, cells)
+        self.mesh = mesh if mesh is not None else slab_mesh(comm, cells)  # shared: companion
         msh = self.mesh.msh
         extra = getattr(scene.forms, "extra_dual", 0)  # multipliers of a lifted scene
         self.W = vector_space(msh, degree, 2 * n + extra)
