@@ -32,7 +32,7 @@ from fem_dual.output import check_output_dir_on_root
 from fem_dual.sinks import (AcceptedSlab, Accumulator, PartialBatch, ProgressSink, Restart,
                             SlabBatch, XdmfSink)
 from fem_dual import faults
-from fem_dual.newton import NewtonSlabSolver
+from fem_dual.newton import NO_PROGRESS_ITS, NewtonSlabSolver
 from fem_dual.problem import SlabProblem
 from fem_dual.recovery import VertexSampler, VertexValues
 from fem_dual.solvers import LinearSlabSolver, solver_prefix
@@ -278,6 +278,8 @@ class Simulation:
                                              else self.modal.scene)
             self.scene = config.scene
         self.solver.reset()
+        if isinstance(self.solver, NewtonSlabSolver):  # guessed slab lengths: give up early
+            self.solver.patience = NO_PROGRESS_ITS if config.rtol is not None else None
         self.superposition = None
         self.tangent_solves = 0
         self._maps = {}
