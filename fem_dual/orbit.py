@@ -388,24 +388,31 @@ def monodromy(scene, z0: np.ndarray, T: float) -> Tuple[np.ndarray, np.ndarray]:
     return y[:m], y[m:].reshape(m, m)
 
 
-def guess_motion(scene, x0: np.ndarray, v0: np.ndarray, T0: float, times: np.ndarray,
-                 degree: int) -> np.ndarray:
-    """The motion from (x0, v0) at `times` in [0, T0], by fem-dual (--rtol 1e-9)."""
-    from fem_dual.config import RunConfig
-    from fem_dual.driver import Simulation
+class GuessMotion:
+    """The guess of an orbit: the motion from (x0, v0) over T0, by fem-dual (--rtol 1e-9, p = 4,
+    4 cells per slab), on one compiled simulation reused for every guess of a family."""
 
-    config = RunConfig.create(scene, T=T0, x0=x0, v0=v0, cells=4, degree=max(degree, 4),
-                              rtol=1e-9, reference="none")
-    sim = Simulation.for_config(config, MPI.COMM_SELF)
-    try:
-        result = sim.run(config)
-    finally:
-        sim.close()
-    if result.status != "ok":
-        raise SolveError(f"the guess (the motion from x0, v0 over {T0:g}) failed: "
-                         f"{result.message}")
-    x, v = result.at(times)
-    return np.hstack([x, v])
+    def __init__(self):
+        self.sim = None
+
+    def __call__(self, scene, x0: np.ndarray, v0: np.ndarray, T0: float):
+        """The run's result (its `at(times)` gives the motion anywhere in [0, T0])."""
+        from fem_dual.config import RunConfig
+        from fem_dual.driver import Simulation
+
+        config = RunConfig.create(scene, T=T0, x0=x0, v0=v0, cells=4, degree=4, rtol=1e-9,
+                                  reference="none")
+        if self.sim is None:
+            self.sim = Simulation.for_config(config, MPI.COMM_SELF)
+        result = self.sim.run(config)
+        if result.status != "ok":
+            raise SolveError(f"the guess (the motion from x0, v0 over {T0:g}) failed: "
+                             f"{result.message}")
+        return result
+
+    def close(self) -> None:
+        if self.sim is not None:
+            self.sim.close()
 
 
 class Orbits:
@@ -418,13 +425,17 @@ class Orbits:
             self.solver = OrbitSolver(self.problem)
         self.compile_s = time.perf_counter() - tic
         self.scene = scene
+        self.guess = GuessMotion()
 
     def close(self) -> None:
         self.solver.close()
+        self.guess.close()
 
     def solve(self, scene, x0: np.ndarray, v0: np.ndarray, T0: float, mode: str = "closest",
-              energy: Optional[float] = None, check: bool = True) -> OrbitResult:
-        """The orbit near the motion from (x0, v0) over T0. Raises SolveError."""
+              energy: Optional[float] = None, check: bool = True,
+              guess=None) -> OrbitResult:
+        """The orbit near the motion from (x0, v0) over T0 (`guess`: that motion, a RunResult,
+        if already computed). Raises SolveError."""
         p = self.problem
         matrices = energy_matrices(scene)
         if mode == "energy" and matrices is None:
@@ -434,7 +445,9 @@ class Orbits:
             p.set_scene_constants(scene)
             self.scene = scene
         tic = time.perf_counter()
-        p.set_base(guess_motion(scene, x0, v0, T0, T0 * p.base_nodes, p.degree))
+        if guess is None:
+            guess = self.guess(scene, x0, v0, T0)
+        p.set_base(np.hstack(guess.at(T0 * p.base_nodes)))
         guess_s = time.perf_counter() - tic
         tic = time.perf_counter()
         p.w.x.array[:] = 0.0
@@ -515,12 +528,12 @@ def _number_parameters(scene) -> List[str]:
 
 
 def estimate(orbits_p1: "Orbits", scene, result: OrbitResult, mode: str,
-             energy: Optional[float]) -> Dict[str, Any]:
+             energy: Optional[float], guess) -> Dict[str, Any]:
     """The orbit's error estimated without a reference: the same orbit with degree p + 1, from
-    the same guess; the differences in the period and the multipliers."""
+    the same guess; the differences in the period and the orbit's vertex states."""
     g = result.guess
     other = orbits_p1.solve(scene, np.array(g["x0"]), np.array(g["v0"]), g["period"], mode,
-                            energy, check=False)
+                            energy, check=False, guess=guess)
     return {"period": abs(other.period - result.period),
             "state": float(np.abs(np.hstack([np.array(other.x) - np.array(result.x),
                                              np.array(other.v) - np.array(result.v)])).max()),
@@ -546,9 +559,16 @@ def orbit_family(scene, params: Dict[str, Any], x0: np.ndarray, v0: np.ndarray, 
             member = scene if value is None else _scene(scene.name, {**params,
                                                                      continuation[0]: value})
             try:
-                result = orbits.solve(member, x0, v0, T0, mode, energy)
+                tic = time.perf_counter()
+                guess = orbits.guess(member, x0, v0, T0)
+                guess_s = time.perf_counter() - tic
+                result = orbits.solve(member, x0, v0, T0, mode, energy, guess=guess)
+                result.timings["guess_s"] = guess_s
                 if companion is not None and result.status == "ok":
-                    result.estimate = estimate(companion, member, result, mode, energy)
+                    tic = time.perf_counter()
+                    result.estimate = estimate(companion, member, result, mode, energy, guess)
+                    result.timings["estimate_s"] = time.perf_counter() - tic
+                    result.timings["compile_s"] += companion.compile_s if k == 0 else 0.0
             except SolveError as exc:
                 if continuation is None or not steps:
                     raise
