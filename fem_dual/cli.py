@@ -456,6 +456,9 @@ def _orbit(args, params, comm) -> int:
         raise InputError(f"degree={config.degree} is too large for orbits (at most 8)")
     if config.cells > 4096:
         raise InputError(f"cells={config.cells} is too large for orbits (at most 4096)")
+    from fem_dual.orbit import check_resolution
+
+    check_resolution(config.scene, config.x0, config.v0, config.T, config.cells)
     continuation = (None if args.continuation is None
                     else parse_continuation(args.continuation, config.scene))
     if mode == "energy" and energy_matrices(config.scene) is None:

@@ -32,6 +32,7 @@ the Floquet multipliers.
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional, Tuple
 
@@ -245,8 +246,7 @@ class OrbitSolver:
         if pointwise is not None:
             message = pointwise.solve(self.p.comm)
             if message:
-                raise SolveError(message.replace("use smaller slabs or larger alpha",
-                                                 "give a better guess (--period, --x0, --v0)"))
+                raise SolveError(_orbit_advice(message))
 
     def system(self, mode: str):
         """(H, g): the bordered Hessian and gradient in the unknowns of `mode`."""
@@ -277,9 +277,10 @@ class OrbitSolver:
                 raise SolveError("the orbit's Newton met a non-finite residual; give a better "
                                  "guess (--period, --x0, --v0)")
             try:
-                with np.errstate(all="raise"):
+                with np.errstate(all="raise"), warnings.catch_warnings():
+                    warnings.simplefilter("error", spla.MatrixRankWarning)
                     delta = spla.spsolve(H, -g)
-            except (RuntimeError, FloatingPointError) as exc:
+            except (RuntimeError, FloatingPointError, spla.MatrixRankWarning) as exc:
                 raise SolveError(f"the orbit's Newton system is singular ({exc}); the orbit is "
                                  "not isolated in this mode, or the guess is too far") from exc
             if not np.isfinite(delta).all():
@@ -453,8 +454,11 @@ class Orbits:
         p.w.x.array[:] = 0.0
         p.T_c.value, p.mu_c.value = T0, 0.0
         p.start_dtp()
-        history = self.solver.solve("closest" if mode == "energy" else mode)
-        s, x, v = self.solver.orbit_vertices()
+        try:
+            history = self.solver.solve("closest" if mode == "energy" else mode)
+            s, x, v = self.solver.orbit_vertices()
+        except SolveError as exc:
+            raise SolveError(_orbit_advice(str(exc))) from None
         if matrices is not None:
             M, K = matrices
             orbit_energy = 0.5 * float(v[0] @ M @ v[0] + x[0] @ K @ x[0])
@@ -496,6 +500,38 @@ class Orbits:
                               f"({result.closure_relative:.3g} relative) by DOP853 from its start; "
                               "raise --cells or --degree, or give a better guess")
         return result
+
+
+MAX_RADIANS_PER_CELL = 8.0  # a guess that turns faster than this per cell cannot be resolved
+
+
+def check_resolution(scene, x0: np.ndarray, v0: np.ndarray, T0: float, cells: int) -> None:
+    """InputError when the guess turns more than MAX_RADIANS_PER_CELL per cell at its start
+    rate (its motion could not be resolved, and the guess run alone would take that long)."""
+    from fem_dual.stepper import motion_rate
+
+    if scene.linear:
+        from fem_dual.scenes.linear import first_order_matrix
+
+        A = first_order_matrix(scene.mass_matrix(), scene.stiffness_matrix(),
+                               scene.damping_matrix())
+        a0 = (A @ np.concatenate([x0, v0]))[scene.n:]
+    else:
+        a0 = np.linalg.solve(scene.mass_matrix(), scene.force_numpy(x0))
+    if not np.any(v0) and not np.any(a0):
+        raise InputError(f"x0={list(map(float, x0))}, v0=0 is an equilibrium: no orbit starts "
+                         "there; give a start on the orbit")
+    turns = motion_rate(x0, v0, a0) * T0 / cells
+    if not turns <= MAX_RADIANS_PER_CELL:
+        raise InputError(f"period={T0:g} spans {turns:.3g} radians per cell of the guess's "
+                         f"motion over {cells} cells (at most {MAX_RADIANS_PER_CELL:g}); give the "
+                         "period of one orbit, or raise --cells")
+
+
+def _orbit_advice(message: str) -> str:
+    """A slab solver's advice, turned into an orbit's."""
+    return message.replace("use smaller slabs or larger alpha",
+                           "give a better guess (--period, --x0, --v0), or raise alpha")
 
 
 def parse_continuation(text: str, scene) -> Tuple[str, np.ndarray]:

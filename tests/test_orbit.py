@@ -131,6 +131,8 @@ def _cli(args, tmp_path):
     (["ziegler", "--period", "6", "--cells", "0"], "cells"),
     (["ziegler", "--period", "6", "--degree", "0"], "degree"),
     (["curl2d-lifted", "--period", "6"], "curl2d"),
+    (["ziegler", "--x0", "0,0", "--period", "13"], "equilibrium"),
+    (["ziegler", "--x0", "0.1,0.16", "--period", "1e6"], "period=1e+06"),
 ])
 def test_bad_input_is_one_line_and_exit_2(tmp_path, args, named):
     proc = _cli(args, tmp_path)
