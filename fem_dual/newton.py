@@ -104,10 +104,25 @@ class NewtonSlabSolver(CompiledSlab):
         self.histories: List[List[float]] = []
         self._error: Optional[str] = None
         self._floor = 0.0
+        self._solved_residual: Optional[PETSc.Vec] = None  # of the last solve (tangent)
 
     def close(self) -> None:
+        self._forget_residual()
         destroy_petsc(self.snes, self.x)
         super().close()
+
+    def _converged_residual(self) -> PETSc.Vec:
+        """R at the converged slab from its start state, assembled once per solve (the tangents
+        in every direction and the extra Newton step share it). Collective."""
+        if self._solved_residual is None:
+            self._solved_residual = self.b.duplicate()
+            self._residual(self.snes, self.x, self._solved_residual)
+        return self._solved_residual
+
+    def _forget_residual(self) -> None:
+        if self._solved_residual is not None:
+            self._solved_residual.destroy()
+            self._solved_residual = None
 
     def reset(self) -> None:
         """Forget the counts of earlier runs."""
@@ -168,6 +183,7 @@ class NewtonSlabSolver(CompiledSlab):
         slab); the value is the residual norm of the zero dual state (the partner's first),
         which the relative tolerance refers to, as it would from zero."""
         self._error = None
+        self._forget_residual()
         if warm is not None:
             self.problem.w.vector.copy(self.x)
             fem_petsc.set_bc(self.x, self.problem.bcs)  # exactly zero, as the residual assumes
@@ -206,31 +222,29 @@ class NewtonSlabSolver(CompiledSlab):
         self.residual_norms.append(history[-1] if history else 0.0)
         self.histories.append(history)
 
-    def tangent(self, z0: np.ndarray, dz: np.ndarray) -> float:
+    def tangent(self, z0: np.ndarray, dz: np.ndarray, relative: float = 1e-6) -> float:
         """Linearise the converged slab around its start state z0 in the direction dz: leaves
         the problem at start state z0 + eps dz with the dual state w + eps dw, where
-        J dw = -dR/dz dz (J: the Jacobian factored in the last Newton step), and returns eps.
-        `restore(z0)` goes back. Collective."""
+        J dw = -dR/dz dz (J: the Jacobian factored in the last Newton step), and returns eps
+        (`relative` times the size of z0 and dz over that of dz). `restore(z0)` goes back.
+        Collective."""
         p, n = self.problem, self.problem.n
         size = float(np.abs(dz).max(initial=0.0))
-        eps = 1e-6 * max(float(np.abs(z0).max(initial=0.0)), size) / size
-        r0, r1 = self.b.duplicate(), self.b.duplicate()
-        self._residual(self.snes, self.x, r0)
+        eps = relative * max(float(np.abs(z0).max(initial=0.0)), size) / size
+        r0 = self._converged_residual()
+        r1 = self.b.duplicate()
         z1 = z0 + eps * dz
         p.set_start(z1[:n], z1[n:])
         self._residual(self.snes, self.x, r1)
         r1.axpy(-1.0, r0)
         self._displace(r1)
-        r0.destroy()
         return eps
 
     def newton_step(self) -> None:
         """Leave the problem at the converged state plus one more Newton step, w - J^-1 R(w) (J:
         the Jacobian factored in the last Newton step): how far the answer would still move is
         its algebraic error. `restore(z0)` goes back. Collective."""
-        r = self.b.duplicate()
-        self._residual(self.snes, self.x, r)
-        self._displace(r)
+        self._displace(self._converged_residual().copy())
 
     def _displace(self, r: PETSc.Vec) -> None:
         """w = x - J^-1 r, with the implicit DtP map solved there; destroys r."""

@@ -24,10 +24,12 @@ base state. Modes:
 Newton runs on the bordered second variation with the periodic dofs merged (sparse LU); it is
 serial (an orbit's time mesh is small): under MPI rank 0 solves and the others wait.
 
-The multipliers and the closure come from an independent check: DOP853 (rtol = atol = 1e-13)
-integrates the undamped motion and its variational equation from the orbit's start over one
-period; the closure |z(T) - z(0)| says whether the orbit closes, the monodromy's eigenvalues are
-the Floquet multipliers.
+The Floquet multipliers are the eigenvalues of the monodromy of fem-dual's own slabs
+(SlabFlow): the product of the Jacobians of the slab maps along the orbit, with the degree p + 1
+companion's product as their error estimate. An independent check follows: DOP853
+(rtol = atol = 1e-13) integrates the undamped motion and its variational equation from the
+orbit's start over one period; the closure |z(T) - z(0)| says whether the orbit closes, and its
+monodromy's multipliers must agree with fem-dual's.
 """
 from __future__ import annotations
 
@@ -59,6 +61,7 @@ NEWTON_TOL = 1e-12  # Newton step: relative change of the orbit's vertex states 
 NEWTON_STAGNATION = 1e-9  # ... or below this, a step no longer 4x smaller than the last
 CLOSURE_TOL = 1e-6  # closure / max|z| above this: the orbit does not close
 MU_TOL = 1e-6  # |mu| T above this: an orbit of the damped system only
+MULTIPLIER_TOL = 1e-6  # multipliers' estimate or check above this (relative): not vouched for
 
 
 def parse_mode(text: str) -> Tuple[str, Optional[float]]:
@@ -204,6 +207,9 @@ class OrbitResult:
     message: str = ""
     energy: Optional[float] = None
     estimate: Dict[str, Any] = field(default_factory=dict)
+    # the independent check by DOP853 (the multipliers of its monodromy, and their largest
+    # distance to fem-dual's, relative to 1 + |multiplier|)
+    check: Dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> Dict[str, Any]:
         from dataclasses import asdict
@@ -389,6 +395,106 @@ def monodromy(scene, z0: np.ndarray, T: float) -> Tuple[np.ndarray, np.ndarray]:
     return y[:m], y[m:].reshape(m, m)
 
 
+FLOW_CELLS = 4  # cells per slab of fem-dual's own flow over one period (the monodromy)
+FLOW_HALVINGS = 6  # a flow slab whose Newton fails is solved as two halves, this many times
+# The flow starts with as many cells as the orbit and doubles them while the multipliers'
+# estimate exceeds FLOW_TARGET (relative), up to FLOW_MAX_CELLS.
+FLOW_TARGET = 1e-10
+FLOW_MAX_CELLS = 1024
+
+
+class SlabFlow:
+    """The motion over one period by fem-dual's own slabs and the tangents of their slab maps:
+    the monodromy is the product of the slab maps' Jacobians in the start state (exact for linear
+    scenes, central differences of relative size 1e-5 for nonlinear ones). Fixed slabs of
+    FLOW_CELLS cells at the orbit's degree p, as many cells in all as the orbit has; the error
+    companion (degree p + 1, same slabs, Newton from the answer) gives a second monodromy, whose
+    multipliers estimate the error of the first. One compiled simulation for every orbit."""
+
+    def __init__(self, degree: int):
+        self.degree, self.sim = degree, None
+        self._counted = 0.0  # the simulation's set-up seconds already reported
+
+    def new_setup_s(self) -> float:
+        """Seconds of set-up (form compilation) since the last call."""
+        total = self.sim.setup_s if self.sim is not None else 0.0
+        new, self._counted = total - self._counted, total
+        return new
+
+    def __call__(self, scene, z0: np.ndarray, T: float, cells: int,
+                 other_z0: Optional[np.ndarray] = None, other_T: Optional[float] = None):
+        """(z(T), Phi, Phi_companion) from z0 over [0, T] (the companion from other_z0 over
+        [0, other_T], the degree p + 1 orbit, when given); raises SolveError."""
+        from fem_dual.config import RunConfig
+        from fem_dual.driver import Simulation
+
+        n = scene.n
+        slabs = max(1, -(-cells // FLOW_CELLS))
+        config = RunConfig.create(scene, T=T, x0=z0[:n], v0=z0[n:], cells=FLOW_CELLS,
+                                  degree=self.degree, slabs=slabs, base="start",
+                                  reference="none")
+        if self.sim is None:
+            self.sim = Simulation.for_config(config, MPI.COMM_SELF)
+        self.sim.begin(config)
+        self.sim.companion.begin(config)
+        dt, z = T / slabs, np.array(z0, dtype=float)
+        dt_c = (T if other_T is None else other_T) / slabs
+        z_c = np.array(z0 if other_z0 is None else other_z0, dtype=float)
+        Phi = Phi_c = np.eye(2 * n)
+        for k in range(slabs):
+            z, z_c, psi, psi_c = self._slab(z, z_c, k * dt, k * dt_c, dt, dt_c, FLOW_HALVINGS)
+            Phi, Phi_c = psi @ Phi, psi_c @ Phi_c
+        if not (np.isfinite(Phi).all() and np.isfinite(Phi_c).all()):
+            raise SolveError("fem-dual's flow along the orbit blew up")
+        return z, Phi, Phi_c
+
+    def _slab(self, z, z_c, t0: float, t0_c: float, dt: float, dt_c: float, halvings: int):
+        """(end state, companion's, slab map Jacobian, companion's) of the slab [t0, t0 + dt]
+        (the companion's: [t0_c, t0_c + dt_c]), solved as two halves when Newton fails (slabs
+        from a constant base state cannot be as long as the orbit's cells, whose base state is
+        the guess)."""
+        sim, unit = self.sim, np.eye(len(z))
+        companion = sim.companion
+        try:
+            values = sim.solve_slab(z, t0, dt)
+            psi = np.column_stack([sim.tangent(z, e, t0, dt, values, central=True)[-1]
+                                   for e in unit])
+            other = companion.solve_slab(z_c, t0_c, dt_c, start=sim)
+            psi_c = np.column_stack([companion.tangent(z_c, e, t0_c, dt_c, other,
+                                                       central=True)[-1] for e in unit])
+        except SolveError as exc:
+            if halvings == 0:
+                raise SolveError(f"fem-dual's flow along the orbit failed at t = {t0:.6g}: "
+                                 f"{exc}") from None
+            z, z_c, psi, psi_c = self._slab(z, z_c, t0, t0_c, dt / 2, dt_c / 2, halvings - 1)
+            z, z_c, second, second_c = self._slab(z, z_c, t0 + dt / 2, t0_c + dt_c / 2,
+                                                  dt / 2, dt_c / 2, halvings - 1)
+            return z, z_c, second @ psi, second_c @ psi_c
+        return (np.concatenate([values.x[-1], values.v[-1]]),
+                np.concatenate([other.x[-1], other.v[-1]]), psi, psi_c)
+
+    def close(self) -> None:
+        if self.sim is not None:
+            self.sim.close()
+
+
+def nontrivial(lam: np.ndarray) -> np.ndarray:
+    """The multipliers without the two nearest 1 (the flow's direction and the family's)."""
+    return np.array(sorted(lam, key=lambda z: abs(z - 1))[2:])
+
+
+def multiplier_distance(a: np.ndarray, b: np.ndarray) -> float:
+    """The largest distance between matched multipliers of two sets (relative to 1 + |a|),
+    matched by least total distance."""
+    if len(a) == 0:
+        return 0.0
+    from scipy.optimize import linear_sum_assignment
+
+    cost = np.abs(a[:, None] - b[None, :])
+    rows, cols = linear_sum_assignment(cost)
+    return float((cost[rows, cols] / (1.0 + np.abs(a[rows]))).max())
+
+
 class GuessMotion:
     """The guess of an orbit: the motion from (x0, v0) over T0, by fem-dual (--rtol 1e-9, p = 4,
     4 cells per slab), on one compiled simulation reused for every guess of a family."""
@@ -427,16 +533,20 @@ class Orbits:
         self.compile_s = time.perf_counter() - tic
         self.scene = scene
         self.guess = GuessMotion()
+        self.flow = SlabFlow(degree)
 
     def close(self) -> None:
         self.solver.close()
         self.guess.close()
+        self.flow.close()
 
     def solve(self, scene, x0: np.ndarray, v0: np.ndarray, T0: float, mode: str = "closest",
               energy: Optional[float] = None, check: bool = True,
-              guess=None) -> OrbitResult:
+              guess=None, companion: Optional["Orbits"] = None) -> OrbitResult:
         """The orbit near the motion from (x0, v0) over T0 (`guess`: that motion, a RunResult,
-        if already computed). Raises SolveError."""
+        if already computed). `check`: the closure by DOP853 and the multipliers by fem-dual's
+        flow; `companion`: the orbits of degree p + 1, whose orbit from the same guess is the
+        error estimate. Raises SolveError."""
         p = self.problem
         matrices = energy_matrices(scene)
         if mode == "energy" and matrices is None:
@@ -469,14 +579,36 @@ class Orbits:
                 x, v, orbit_energy = x * scale, v * scale, energy
         solve_s = time.perf_counter() - tic
         T, mu = float(p.T_c.value), float(p.mu_c.value)
-        tic = time.perf_counter()
         z0 = np.concatenate([x[0], v[0]])
-        zT, Phi = monodromy(scene, z0, T) if check else (z0, np.eye(len(z0)))
+        tic = time.perf_counter()
+        other = None  # the same orbit at degree p + 1, from the same guess
+        if companion is not None and check:
+            other = companion.solve(scene, x0, v0, T0, mode, energy, check=False, guess=guess)
+        estimate_s = time.perf_counter() - tic
+        tic = time.perf_counter()
+        zT, Phi_check = monodromy(scene, z0, T) if check else (z0, np.eye(len(z0)))
         check_s = time.perf_counter() - tic
+        tic = time.perf_counter()
+        flow_cells = p.mesh.cells
+        Phi = Phi_c = Phi_check
+        # the companion flow (degree p + 1) runs along the degree p + 1 orbit: the multipliers'
+        # estimate sees the error of the orbit's start as well as the flow's
+        other_z0, other_T = ((np.concatenate([other.x[0], other.v[0]]), other.period)
+                             if other is not None else (z0, T))
+        while check:  # finer slabs until the multipliers' estimate meets FLOW_TARGET
+            _, Phi, Phi_c = self.flow(scene, z0, T, flow_cells, other_z0, other_T)
+            error = multiplier_distance(*(nontrivial(np.linalg.eigvals(m)) for m in (Phi, Phi_c)))
+            if error <= FLOW_TARGET or 2 * flow_cells > FLOW_MAX_CELLS:
+                break
+            flow_cells *= 2
+        flow_compile_s = self.flow.new_setup_s()
+        flow_s = time.perf_counter() - tic - flow_compile_s
         closure = float(np.abs(zT - z0).max())
         scale = float(np.abs(np.hstack([x, v])).max())
-        lam = np.linalg.eigvals(Phi)
+        lam, lam_c, lam_check = (np.linalg.eigvals(m) for m in (Phi, Phi_c, Phi_check))
         lam = lam[np.lexsort((lam.imag, -np.abs(lam)))]
+        multipliers_error = multiplier_distance(nontrivial(lam), nontrivial(lam_c))
+        multipliers_check = multiplier_distance(nontrivial(lam), nontrivial(lam_check))
         result = OrbitResult(
             scene=scene.name, parameters=scene.parameters(), mode=mode, period=T, mu=mu,
             t=list(T * s), x=x.tolist(), v=v.tolist(),
@@ -484,11 +616,22 @@ class Orbits:
             nontrivial_multipliers=[[float(z.real), float(z.imag)] for z in
                                     sorted(lam, key=lambda z: abs(z - 1))[2:]],
             closure=closure, closure_relative=closure / scale if scale > 0 else closure,
-            newton=history, timings={"compile_s": self.compile_s, "guess_s": guess_s,
-                                     "solve_s": solve_s, "check_s": check_s},
+            newton=history, timings={"compile_s": self.compile_s + flow_compile_s,
+                                     "guess_s": guess_s,
+                                     "solve_s": solve_s, "check_s": check_s,
+                                     "monodromy_s": flow_s},
             degree=p.degree, cells=p.mesh.cells,
             guess={"x0": list(map(float, x0)), "v0": list(map(float, v0)), "period": T0},
             energy=orbit_energy if matrices is not None else None)
+        if other is not None:
+            result.estimate.update(_differences(result, other), degree=other.degree)
+            result.timings["estimate_s"] = estimate_s
+        if check:
+            result.estimate["multipliers"] = multipliers_error
+            result.timings["monodromy_cells"] = flow_cells
+            result.check = {"multipliers_dop853": [[float(z.real), float(z.imag)]
+                                                   for z in lam_check],
+                            "multipliers": multipliers_check}
         if check and not abs(mu) * T <= MU_TOL:
             result.status = "failed"
             result.message = (f"the unfolding damping converged to mu = {mu:.3g}, not 0: the "
@@ -499,6 +642,12 @@ class Orbits:
             result.message = (f"the orbit does not close: |z(T) - z(0)| = {closure:.3g} "
                               f"({result.closure_relative:.3g} relative) by DOP853 from its start; "
                               "raise --cells or --degree, or give a better guess")
+        elif check and not max(multipliers_error, multipliers_check) <= MULTIPLIER_TOL:
+            result.status = "failed"
+            result.message = (f"the Floquet multipliers are uncertain: degree p and p + 1 differ "
+                              f"by {multipliers_error:.3g}, fem-dual and DOP853 by "
+                              f"{multipliers_check:.3g} (relative to 1 + |multiplier|); raise "
+                              "--cells or --degree")
         return result
 
 
@@ -563,17 +712,11 @@ def _number_parameters(scene) -> List[str]:
             if isinstance(v, (int, float, np.floating)) and not isinstance(v, bool)]
 
 
-def estimate(orbits_p1: "Orbits", scene, result: OrbitResult, mode: str,
-             energy: Optional[float], guess) -> Dict[str, Any]:
-    """The orbit's error estimated without a reference: the same orbit with degree p + 1, from
-    the same guess; the differences in the period and the orbit's vertex states."""
-    g = result.guess
-    other = orbits_p1.solve(scene, np.array(g["x0"]), np.array(g["v0"]), g["period"], mode,
-                            energy, check=False, guess=guess)
+def _differences(result: OrbitResult, other: OrbitResult) -> Dict[str, float]:
+    """The differences in period and vertex states of the same orbit at two degrees."""
     return {"period": abs(other.period - result.period),
             "state": float(np.abs(np.hstack([np.array(other.x) - np.array(result.x),
-                                             np.array(other.v) - np.array(result.v)])).max()),
-            "degree": orbits_p1.problem.degree}
+                                             np.array(other.v) - np.array(result.v)])).max())}
 
 
 def orbit_family(scene, params: Dict[str, Any], x0: np.ndarray, v0: np.ndarray, T0: float,
@@ -598,13 +741,11 @@ def orbit_family(scene, params: Dict[str, Any], x0: np.ndarray, v0: np.ndarray, 
                 tic = time.perf_counter()
                 guess = orbits.guess(member, x0, v0, T0)
                 guess_s = time.perf_counter() - tic
-                result = orbits.solve(member, x0, v0, T0, mode, energy, guess=guess)
+                result = orbits.solve(member, x0, v0, T0, mode, energy, guess=guess,
+                                      companion=companion)
                 result.timings["guess_s"] = guess_s
-                if companion is not None and result.status == "ok":
-                    tic = time.perf_counter()
-                    result.estimate = estimate(companion, member, result, mode, energy, guess)
-                    result.timings["estimate_s"] = time.perf_counter() - tic
-                    result.timings["compile_s"] += companion.compile_s if k == 0 else 0.0
+                if companion is not None and k == 0:
+                    result.timings["compile_s"] += companion.compile_s
             except SolveError as exc:
                 if continuation is None or not steps:
                     raise
@@ -619,7 +760,7 @@ def orbit_family(scene, params: Dict[str, Any], x0: np.ndarray, v0: np.ndarray, 
                 break
             steps.append({continuation[0]: float(value), **{
                 key: record[key] for key in ("period", "mu", "multipliers",
-                                             "nontrivial_multipliers", "closure",
+                                             "nontrivial_multipliers", "check", "closure",
                                              "closure_relative", "energy", "estimate", "status",
                                              "message", "newton", "timings")}})
             out.update(record)  # the last orbit in full
@@ -658,7 +799,10 @@ def orbit_summary(record: Dict[str, Any]) -> str:
               f"  mu         {record['mu']:.3g}",
               f"  x(0)       {record['x'][0]}",
               f"  v(0)       {record['v'][0]}",
-              f"  multipliers {mult} (and the pair at 1)",
+              f"  multipliers {mult} (and the pair at 1; fem-dual's slab maps" + (
+                  f", estimated error {est['multipliers']:.2g}" if "multipliers" in est else "")
+              + (f", DOP853 differs by {record['check']['multipliers']:.2g}"
+                 if record.get("check") else "") + ")",
               f"  closure    {record['closure']:.3g} (DOP853 over one period from x(0), v(0))",
               f"  Newton     {record['newton']['iterations']} iterations; solve "
               f"{record['timings']['solve_s'] * 1e3:.1f} ms"]

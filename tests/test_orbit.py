@@ -12,7 +12,7 @@ from scipy.integrate import solve_ivp
 
 from fem_dual.cli import main
 from fem_dual.config import _scene
-from fem_dual.orbit import Orbits
+from fem_dual.orbit import Orbits, SlabFlow, multiplier_distance, nontrivial
 
 FEM_DUAL = [sys.executable, "-m", "fem_dual.cli"]
 CURL = {"F": "-x - 0.5*y**2, -2*y - 0.5*x**2"}  # a curl force: dFy/dx - dFx/dy = y - x
@@ -51,6 +51,12 @@ def test_ziegler_mode_periods_are_two_pi_over_omega(ziegler_orbits, mode):
     assert all(z.real == pytest.approx(np.cos(other), abs=1e-9) for z in lam)
 
 
+def _multiplier_error(r, exact):
+    """The largest distance of the orbit's nontrivial multipliers to `exact` (complex)."""
+    lam = sorted((complex(*m) for m in r.multipliers), key=lambda z: abs(z - 1))[2:]
+    return max(min(abs(z - e) for e in exact) for z in lam)
+
+
 def _period_errors(scene, x0, T0, degree, cells_list, exact):
     errors, closures = [], []
     for cells in cells_list:
@@ -62,6 +68,36 @@ def _period_errors(scene, x0, T0, degree, cells_list, exact):
         errors.append(abs(r.period - exact))
         closures.append(r.closure)
     return np.array(errors), np.array(closures)
+
+
+@pytest.mark.parametrize("degree", [2, 3])
+def test_multipliers_of_fem_duals_own_slabs_converge_at_order_2p(ziegler_orbits, degree):
+    """Ziegler's slow mode: the fast mode turns by omega_fast T in one period, so the exact
+    nontrivial multipliers are exp(+-i omega_fast T); the monodromy of fem-dual's slab maps
+    along the orbit reaches them at order 2p, and its degree p + 1 estimate is the error's size
+    (relative to 1 + |multiplier| = 2: half of it)."""
+    scene, omega, shapes = ziegler_modes()
+    x0 = 0.1 * shapes[:, 0] / np.abs(shapes[:, 0]).max()
+    r = ziegler_orbits.solve(scene, x0, np.zeros(2), 1.05 * 2 * np.pi / omega[0])
+    assert r.status == "ok", r.message
+    turn = omega[1] * r.period
+    exact = np.array([np.exp(1j * turn), np.exp(-1j * turn)])
+    z0 = np.concatenate([r.x[0], r.v[0]])
+    flow = SlabFlow(degree)
+    errors, estimates = [], []
+    try:
+        for cells in (32, 64):
+            _, Phi, Phi_c = flow(scene, z0, r.period, cells)
+            lam = nontrivial(np.linalg.eigvals(Phi))
+            errors.append(max(np.abs(exact - z).min() for z in lam))
+            estimates.append(multiplier_distance(lam, nontrivial(np.linalg.eigvals(Phi_c))))
+    finally:
+        flow.close()
+    # measured 32 -> 64 -> 128 cells: orders 4.5, 4.3 (p = 2), 6.4, 6.2 (p = 3), 8.3, 8.3 (p = 4)
+    assert 2 * degree - 0.5 <= np.log2(errors[0] / errors[1]) <= 2 * degree + 1
+    assert all(0.4 * e <= est <= 0.6 * e for e, est in zip(errors, estimates))
+    # the orbit's own multipliers: the flow refined until the estimate met its target
+    assert _multiplier_error(r, exact) <= 1e-9 and r.estimate["multipliers"] <= 1e-10
 
 
 @pytest.mark.parametrize("degree", [2, 3])
@@ -109,6 +145,19 @@ def test_a_nonlinear_orbit_closes_under_an_independent_integration():
     lam = np.array([complex(*m) for m in r.multipliers])
     assert abs(np.prod(lam) - 1) <= 1e-9
     assert np.sort(np.abs(lam)) == pytest.approx(np.ones(4), abs=1e-8)
+    # fem-dual's multipliers (its own slab maps) against the monodromy of DOP853 on the
+    # variational equation, written here: to 1e-10, and the estimate says as much
+    def variational(_t, y):
+        x, y_ = y[:2]
+        J = np.array([[0, 0, 1, 0], [0, 0, 0, 1], [-1, -y_, 0, 0], [-x, -2, 0, 0]])
+        return np.concatenate([rhs(_t, y[:4]), (J @ y[4:].reshape(4, 4)).ravel()])
+
+    y = solve_ivp(variational, (0, r.period), np.concatenate([z0, np.eye(4).ravel()]),
+                  method="DOP853", rtol=1e-13, atol=1e-13).y[:, -1]
+    reference = np.linalg.eigvals(y[4:].reshape(4, 4))
+    reference = sorted(reference, key=lambda z: abs(z - 1))[2:]
+    assert _multiplier_error(r, reference) <= 1e-10
+    assert r.estimate["multipliers"] <= 1e-10 and r.check["multipliers"] <= 1e-10
 
 
 def _cli(args, tmp_path):
@@ -181,3 +230,19 @@ def test_orbit_under_mpi_equals_serial(tmp_path_factory, capsys):
         assert out == ""
     serial = main(args, MPI.COMM_SELF)
     assert serial == 0
+
+
+def test_multipliers_it_cannot_vouch_for_are_a_failure(monkeypatch):
+    """With the flow held at the orbit's 8 cells (p = 4), the curl force's multipliers differ
+    by 1.4e-6 between degrees p and p + 1: status failed, not ok."""
+    import fem_dual.orbit as orbit
+
+    monkeypatch.setattr(orbit, "FLOW_MAX_CELLS", 8)
+    force = _scene("force", CURL)
+    orbits = Orbits(force, 4, 8)
+    try:
+        r = orbits.solve(force, np.array([0.3, 0.0]), np.zeros(2), 6.3)
+    finally:
+        orbits.close()
+    assert r.status == "failed" and "multipliers are uncertain" in r.message
+    assert r.estimate["multipliers"] > orbit.MULTIPLIER_TOL
