@@ -448,8 +448,13 @@ def _orbit(args, params, comm) -> int:
     mode, energy = parse_mode(args.mode)
     from fem_dual.scenes.base import parse_number
 
-    if not parse_number("period", args.period) > 0:
+    from fem_dual.config import MIN_T
+
+    period = parse_number("period", args.period)
+    if not period > 0:
         raise InputError(f"period={args.period!r} must be positive")
+    if period < MIN_T:
+        raise InputError(f"period={args.period!r} is too small (at least {MIN_T:g})")
     config = RunConfig.create(args.scene, params, T=args.period, cells=args.cells,
                               degree=args.degree, x0=args.x0, v0=args.v0)
     if config.degree > 8:
@@ -461,6 +466,11 @@ def _orbit(args, params, comm) -> int:
     check_resolution(config.scene, config.x0, config.v0, config.T, config.cells)
     continuation = (None if args.continuation is None
                     else parse_continuation(args.continuation, config.scene))
+    if continuation is not None:  # every member's parameters, before any work
+        from fem_dual.config import _scene
+
+        for value in continuation[1]:
+            _scene(config.scene.name, {**params, continuation[0]: value})
     if mode == "energy" and energy_matrices(config.scene) is None:
         raise InputError(f"mode energy needs a scene with an energy (linear, K symmetric, "
                          f"undamped); {config.scene.name} with these parameters has none")
@@ -490,9 +500,10 @@ def _orbit(args, params, comm) -> int:
 
 
 def _orbit_on_root(args, config, params, mode, energy, continuation, dirs):
+    from fem_dual.compat import quiet_jit_logging
     from fem_dual.orbit import orbit_family, orbit_summary, write_orbit_files
 
-    with _stdout_to_stderr(args.json):
+    with _stdout_to_stderr(args.json), quiet_jit_logging():  # (expressions compile lazily)
         try:
             record = orbit_family(config.scene, params, config.x0, config.v0, config.T,
                                   config.degree, config.cells, mode, energy, continuation,

@@ -172,6 +172,9 @@ def parse_times(text: "str | Sequence[float]", T: float) -> np.ndarray:
     return times
 
 
+MIN_T = 1e-150  # shorter final times overflow 1/dt^2 in the forms (and subnormals lose digits)
+
+
 @dataclass(frozen=True)
 class RunConfig:
     """Everything a run needs. Build it with `RunConfig.create`, which validates."""
@@ -280,6 +283,9 @@ class RunConfig:
         T_value = scene.default_T if T is None else parse_number("T", T)
         if not T_value > 0:
             raise InputError(f"T={T!r} must be positive")
+        if T_value < MIN_T:  # the forms divide by the slab length and by its square
+            raise InputError(f"T={T!r} is too small (at least {MIN_T:g}: 1/T^2 must not "
+                             "overflow)")
         cells_ = _whole_number("cells", cells)
         degree_ = _whole_number("degree", degree)
         slabs_ = _whole_number("slabs", slabs)

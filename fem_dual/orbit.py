@@ -61,6 +61,8 @@ NEWTON_TOL = 1e-12  # Newton step: relative change of the orbit's vertex states 
 NEWTON_STAGNATION = 1e-9  # ... or below this, a step no longer 4x smaller than the last
 CLOSURE_TOL = 1e-6  # closure / max|z| above this: the orbit does not close
 MU_TOL = 1e-6  # |mu| T above this: an orbit of the damped system only
+COLLAPSE_TOL = 1e-6  # an orbit that moves by less than this times its size: an equilibrium
+MAX_FOLD = 12  # an orbit closing after T/k for k up to this is a k-fold cover: not its period
 MULTIPLIER_TOL = 1e-6  # multipliers' estimate or check above this (relative): not vouched for
 
 
@@ -375,9 +377,9 @@ def _rhs_and_jacobian(scene):
     return f, jac
 
 
-def monodromy(scene, z0: np.ndarray, T: float) -> Tuple[np.ndarray, np.ndarray]:
-    """(z(T), Phi(T)): DOP853 at rtol = atol = 1e-13 on the motion and its variational
-    equation from z0 over [0, T]."""
+def monodromy(scene, z0: np.ndarray, T: float) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(z(T), Phi(T), z(T/k) for k = 2 .. MAX_FOLD): DOP853 at rtol = atol = 1e-13 on the motion
+    and its variational equation from z0 over [0, T] (its dense output at T/k)."""
     from scipy.integrate import solve_ivp
 
     f, jac = _rhs_and_jacobian(scene)
@@ -388,11 +390,13 @@ def monodromy(scene, z0: np.ndarray, T: float) -> Tuple[np.ndarray, np.ndarray]:
         return np.concatenate([f(z), (jac(z) @ Phi).ravel()])
 
     y0 = np.concatenate([z0, np.eye(m).ravel()])
-    sol = solve_ivp(rhs, (0.0, T), y0, method="DOP853", rtol=1e-13, atol=1e-13)
+    sol = solve_ivp(rhs, (0.0, T), y0, method="DOP853", rtol=1e-13, atol=1e-13,
+                    dense_output=True)
     if not sol.success:
         raise SolveError(f"the check of the orbit by DOP853 failed: {sol.message}")
     y = sol.y[:, -1]
-    return y[:m], y[m:].reshape(m, m)
+    parts = np.array([sol.sol(T / k)[:m] for k in range(2, MAX_FOLD + 1)])
+    return y[:m], y[m:].reshape(m, m), parts
 
 
 FLOW_CELLS = 4  # cells per slab of fem-dual's own flow over one period (the monodromy)
@@ -586,7 +590,8 @@ class Orbits:
             other = companion.solve(scene, x0, v0, T0, mode, energy, check=False, guess=guess)
         estimate_s = time.perf_counter() - tic
         tic = time.perf_counter()
-        zT, Phi_check = monodromy(scene, z0, T) if check else (z0, np.eye(len(z0)))
+        zT, Phi_check, parts = (monodromy(scene, z0, T) if check
+                                else (z0, np.eye(len(z0)), np.zeros((0, len(z0)))))
         check_s = time.perf_counter() - tic
         tic = time.perf_counter()
         flow_cells = p.mesh.cells
@@ -605,6 +610,11 @@ class Orbits:
         flow_s = time.perf_counter() - tic - flow_compile_s
         closure = float(np.abs(zT - z0).max())
         scale = float(np.abs(np.hstack([x, v])).max())
+        # closures relative to the orbit's extent (its largest range in one component), not to
+        # its offset: an orbit around x = 1 of amplitude 1e-7 is no orbit of size 1
+        extent = float(np.ptp(np.hstack([x, v]), axis=0).max())
+        folds = [k for k, z in enumerate(parts, start=2)
+                 if np.abs(z - z0).max() <= CLOSURE_TOL * extent]
         lam, lam_c, lam_check = (np.linalg.eigvals(m) for m in (Phi, Phi_c, Phi_check))
         lam = lam[np.lexsort((lam.imag, -np.abs(lam)))]
         multipliers_error = multiplier_distance(nontrivial(lam), nontrivial(lam_c))
@@ -615,7 +625,7 @@ class Orbits:
             multipliers=[[float(z.real), float(z.imag)] for z in lam],
             nontrivial_multipliers=[[float(z.real), float(z.imag)] for z in
                                     sorted(lam, key=lambda z: abs(z - 1))[2:]],
-            closure=closure, closure_relative=closure / scale if scale > 0 else closure,
+            closure=closure, closure_relative=closure / (extent if extent > 0 else scale),
             newton=history, timings={"compile_s": self.compile_s + flow_compile_s,
                                      "guess_s": guess_s,
                                      "solve_s": solve_s, "check_s": check_s,
@@ -637,6 +647,17 @@ class Orbits:
             result.message = (f"the unfolding damping converged to mu = {mu:.3g}, not 0: the "
                               "guess is near no orbit of the undamped system (past flutter, or "
                               "a motion that is not periodic); give a better guess")
+        elif check and not extent > COLLAPSE_TOL * scale:
+            result.status = "failed"
+            result.message = (f"the orbit collapsed onto an equilibrium: it moves by "
+                              f"{extent:.3g} around {scale:.3g}; give a guess near an orbit "
+                              "(--period near one, a larger amplitude in --x0, --v0)")
+        elif check and folds:
+            k = folds[-1]
+            result.status = "failed"
+            result.message = (f"the orbit closes after T/{k} = {T / k:.12g} already: it runs "
+                              f"{k} times around an orbit of period {T / k:.12g}; give --period "
+                              f"near {T / k:.6g}")
         elif check and not result.closure_relative <= CLOSURE_TOL:
             result.status = "failed"
             result.message = (f"the orbit does not close: |z(T) - z(0)| = {closure:.3g} "
@@ -792,8 +813,9 @@ def orbit_summary(record: Dict[str, Any]) -> str:
                      f"|multipliers| {mods}  closure {step['closure']:.2g}")
     est = record.get("estimate") or {}
     mult = ", ".join(f"{re:.10g}{im:+.10g}i" for re, im in record["nontrivial_multipliers"])
+    verdict = "" if record.get("status") == "ok" else " -- NOT AN ORBIT (status failed)"
     lines += [f"{record['scene']}: periodic orbit ({record['mode']}), p = {record['degree']}, "
-              f"{record['cells']} cells",
+              f"{record['cells']} cells{verdict}",
               f"  period     {record['period']:.15g}" + (
                   f"  (estimated error {est['period']:.2g})" if "period" in est else ""),
               f"  mu         {record['mu']:.3g}",

@@ -182,6 +182,10 @@ def _cli(args, tmp_path):
     (["curl2d-lifted", "--period", "6"], "curl2d"),
     (["ziegler", "--x0", "0,0", "--period", "13"], "equilibrium"),
     (["ziegler", "--x0", "0.1,0.16", "--period", "1e6"], "period=1e+06"),
+    (["ziegler", "--x0", "0.1,0.16", "--period", "1e-320"], "period='1e-320'"),
+    # a member past the first is bad: refused before any orbit is computed
+    (["force", "--F", "-x - 0.1235*x**3", "--x0", "0.3", "--period", "6.3", "--continue",
+      "m=1:0:2"], "m=0"),
 ])
 def test_bad_input_is_one_line_and_exit_2(tmp_path, args, named):
     proc = _cli(args, tmp_path)
@@ -246,3 +250,23 @@ def test_multipliers_it_cannot_vouch_for_are_a_failure(monkeypatch):
         orbits.close()
     assert r.status == "failed" and "multipliers are uncertain" in r.message
     assert r.estimate["multipliers"] > orbit.MULTIPLIER_TOL
+
+
+def test_an_equilibrium_or_a_multiple_period_is_no_orbit():
+    """The linear oscillator around x = 1 (period 2 pi) held at period 6.2832 collapses onto its
+    equilibrium (it moves by 1e-7): failed. A guess over twice (three times) the period finds
+    the orbit run twice (three times): failed, naming the period. (Found by a hostile test.)"""
+    shifted = _scene("force", {"F": "-(x - 1)"})
+    orbits = Orbits(shifted, 4, 64)
+    try:
+        r = orbits.solve(shifted, np.array([1.001]), np.zeros(1), 6.2832, mode="period")
+    finally:
+        orbits.close()
+    assert r.status == "failed" and "equilibrium" in r.message
+    force = _scene("force", CURL)
+    orbits = Orbits(force, 4, 64)
+    try:
+        r = orbits.solve(force, np.array([0.3, 0.0]), np.zeros(2), 12.6)
+    finally:
+        orbits.close()
+    assert r.status == "failed" and "T/2 = 6.283187" in r.message
