@@ -28,6 +28,7 @@ from fem_dual.mpi import allreduce
 __all__ = ["PointwiseDtP", "BRANCH_TOL"]
 
 BRANCH_TOL = 1e-3  # lambda_min / lambda_max of G_x below this: leaving the base state branch
+LAST_STEP = 1e-8  # a relative Newton step below this is the last one
 
 
 class PointwiseDtP:
@@ -66,39 +67,41 @@ class PointwiseDtP:
         self.X.x.array.reshape(-1, self.n)[:] = xbar
 
     def solve(self, comm, max_it: int = 50) -> Optional[str]:
-        """Solve G = 0 at every point; returns None, or a message (the same on every rank)."""
+        """Solve G = 0 at every point; returns None, or a message (the same on every rank).
+
+        The branch test (eigenvalues of G_x) is made at the root and, when Newton fails, at the
+        last iterate: a root on another branch is refused, and an iteration that wandered off
+        is named by where it went."""
         n = self.n
         values = self.X.x.array.reshape(-1, self.n)
         start = values.copy()
         problem = None
-        for it in range(max_it + 1):
-            out = self._eval(self.cells)
-            G, Gx = out[..., :n], out[..., n:n + n * n].reshape(out.shape[:2] + (n, n))
-            t = out[..., -1]
-            with np.errstate(all="ignore"):  # NaN ratios count as bad below
-                eig = np.linalg.eigvalsh(0.5 * (Gx + np.swapaxes(Gx, -1, -2)))
-                ratio = eig[..., 0] / np.abs(eig).max(axis=-1)
-            bad = ~(ratio > BRANCH_TOL)
-            if bad.any():
-                where = np.unravel_index(np.argmin(np.where(np.isnan(ratio), -np.inf, ratio)),
-                                         bad.shape)
-                problem = (f"the DtP map is near singular at t = {t[where]:.6g} (smallest/largest "
-                           f"eigenvalue of G_x {ratio[where]:.2g}); use smaller slabs or larger "
-                           "alpha")
-                break
-            step = np.linalg.solve(Gx, G[..., None])[..., 0]
-            if not np.isfinite(step).all():
-                problem = "the DtP map produced a non-finite state"
-                break
-            current = values[self.dofs]
-            if np.abs(step).max() <= 1e-14 * (1.0 + np.abs(current).max()):
-                break
-            values[self.dofs] = current - step
-        else:
-            worst = np.unravel_index(np.argmax(np.abs(step).max(axis=-1)), step.shape[:2])
-            problem = (f"the DtP map has no solution near t = {t[worst]:.6g} (pointwise Newton "
-                       f"did not converge in {max_it} iterations); use smaller slabs or larger "
-                       "alpha")
+        with np.errstate(all="ignore"):  # NaN steps and ratios count as bad below
+            for it in range(max_it + 1):
+                out = self._eval(self.cells)
+                G, Gx = out[..., :n], out[..., n:n + n * n].reshape(out.shape[:2] + (n, n))
+                step = np.linalg.solve(Gx, G[..., None])[..., 0]
+                if not np.isfinite(step).all():
+                    problem = self._branch(Gx, out[..., -1]) or \
+                        "the DtP map produced a non-finite state"
+                    break
+                current = values[self.dofs]
+                values[self.dofs] = current - step
+                if np.abs(step).max() <= LAST_STEP * (1.0 + np.abs(current).max()):
+                    # quadratic convergence: after a step of 1e-8 the root is exact to
+                    # round-off, without one more evaluation to confirm it (G_x and its
+                    # inverse are those of the last iterate, 1e-8 away)
+                    problem = self._branch(Gx, out[..., -1])
+                    break
+            else:
+                t = out[..., -1]
+                problem = self._branch(Gx, t)
+                if problem is None:
+                    worst = np.unravel_index(np.argmax(np.abs(step).max(axis=-1)),
+                                             step.shape[:2])
+                    problem = (f"the DtP map has no solution near t = {t[worst]:.6g} (pointwise "
+                               f"Newton did not converge in {max_it} iterations); use smaller "
+                               "slabs or larger alpha")
         self.iterations = it
         message = allreduce(comm, problem or "", "max")  # any rank's message, on every rank
         if message:
@@ -108,4 +111,19 @@ class PointwiseDtP:
             self.Ginv.x.array.reshape(-1, n * n)[self.dofs] = np.linalg.inv(Gx).reshape(
                 Gx.shape[0], Gx.shape[1], n * n)
         return None
+
+    @staticmethod
+    def _branch(Gx: np.ndarray, t: np.ndarray) -> Optional[str]:
+        """Why the points' G_x leave the base state's branch (smallest / largest eigenvalue
+        below BRANCH_TOL, or not finite), or None."""
+        with np.errstate(all="ignore"):
+            eig = np.linalg.eigvalsh(0.5 * (Gx + np.swapaxes(Gx, -1, -2))) \
+                if np.isfinite(Gx).all() else np.full(Gx.shape[:-1], np.nan)
+            ratio = eig[..., 0] / np.abs(eig).max(axis=-1)
+        bad = ~(ratio > BRANCH_TOL)
+        if not bad.any():
+            return None
+        where = np.unravel_index(np.argmin(np.where(np.isnan(ratio), -np.inf, ratio)), bad.shape)
+        return (f"the DtP map is near singular at t = {t[where]:.6g} (smallest/largest "
+                f"eigenvalue of G_x {ratio[where]:.2g}); use smaller slabs or larger alpha")
 

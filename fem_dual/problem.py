@@ -147,6 +147,9 @@ class SlabProblem:
         return xhat, vhat, L_d
 
     mu = None  # an unfolding damping -mu M v (fem_dual.orbit); slabs have none
+    # bumped whenever a constant changes (start state, slab, parameters): a solver that saw the
+    # same dual state at the same version has the same DtP image (fem_dual.newton)
+    version = 0
 
     def damping(self):
         """The damping matrix D of M v' + D v = F (UFL), or None: the scene's, plus mu M."""
@@ -168,6 +171,7 @@ class SlabProblem:
         for key, value in scene.constants().items():
             self.c[key].value = value
         self.scene = scene
+        self.version += 1
 
     def hamiltonian_of(self, xhat, vhat):
         """The auxiliary dual Hamiltonian (eq. DualHamiltonian) at the DtP image (xhat, vhat).
@@ -193,7 +197,7 @@ class SlabProblem:
         """Start a slab [t0, t0 + dt] from (x0, v0), which is also the base state of H (base
         "start"); the dual state starts from zero, whose DtP image is the base state."""
         self.dt.value, self.t0.value = dt, t0
-        self.set_start(x0, v0)
+        self.set_start(x0, v0)  # (bumps the version)
         self.w.x.array[:] = 0.0
         if self.pointwise is not None:
             self.pointwise.reset(x0)
@@ -201,6 +205,7 @@ class SlabProblem:
     def set_start(self, x0: np.ndarray, v0: np.ndarray) -> None:
         """The slab's start state, which is also its base state unless the base is zero; the
         dual state is kept (the tangent of the slab map perturbs the start of a solved slab)."""
+        self.version += 1
         self.x0.value, self.v0.value = x0, v0
         if self.base == "start":
             self.xbar.value, self.vbar.value = x0, v0
