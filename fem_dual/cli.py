@@ -439,7 +439,7 @@ def _orbit(args, params, comm) -> int:
     """`fem-dual orbit`: rank 0 solves (an orbit's time mesh is small), the others wait for its
     exit status. Exit 0 ok, 2 bad input, 3 no orbit (the JSON says what was reached)."""
     from fem_dual.config import RunConfig
-    from fem_dual.orbit import energy_matrices, parse_continuation, parse_mode
+    from fem_dual.orbit import Energy, parse_continuation, parse_mode
 
     if args.F is not None:
         if args.scene != "force":
@@ -471,9 +471,10 @@ def _orbit(args, params, comm) -> int:
 
         for value in continuation[1]:
             _scene(config.scene.name, {**params, continuation[0]: value})
-    if mode == "energy" and energy_matrices(config.scene) is None:
-        raise InputError(f"mode energy needs a scene with an energy (linear, K symmetric, "
-                         f"undamped); {config.scene.name} with these parameters has none")
+    if mode == "energy" and Energy.of(config.scene, config.x0) is None:
+        raise InputError(f"mode energy needs a scene with an energy (linear with K symmetric "
+                         f"and no damping, or a force with a potential); {config.scene.name} "
+                         "with these parameters has none")
     comm = _world(comm)
     dirs = {}
     for option, value in (("out", args.out), ("plot", args.plot)):

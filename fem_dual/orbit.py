@@ -15,11 +15,14 @@ is singular; with mu, Newton converges to mu = 0 and the member of the family cl
 base state. Modes:
 - "closest": T and mu unknown, the rows dS/dT and dS/dmu (symmetric, indefinite);
 - "period": T held at its guess, mu unknown;
-- "energy": the energy E prescribed, for scenes that have one (linear, K symmetric, undamped).
-  Their orbits of one period form families by amplitude, and the dual Hessian has a
-  two-dimensional kernel there (both phases of the mode), where a bordered energy row stays
-  singular (measured: condition 2e16): the closest orbit is scaled to E, which is exact for a
-  linear system. Nonlinear conservative scenes are not among the scenes yet.
+- "energy": the energy E prescribed, for scenes that have one (Energy). A force with a
+  potential (its Jacobian symmetric; V by the line integral from the origin, in UFL by
+  Gauss-Legendre): the row of T becomes the energy averaged over the orbit minus E (one
+  non-symmetric row); far from the guess's energy the closest orbit comes first, then steps in
+  energy, each from the orbit before. A linear scene (K symmetric, undamped): its orbits of one
+  period form families by amplitude, and the dual Hessian has a two-dimensional kernel there
+  (both phases of the mode), where the energy row stays singular (measured: condition 2e16):
+  the closest orbit is scaled to E, which is exact for a linear system.
 
 Newton runs on the bordered second variation with the periodic dofs merged (sparse LU); it is
 serial (an orbit's time mesh is small): under MPI rank 0 solves and the others wait.
@@ -57,12 +60,16 @@ __all__ = ["OrbitProblem", "OrbitResult", "solve_orbit", "MODES", "parse_mode"]
 
 MODES = ("closest", "period", "energy")
 NEWTON_MAX_IT = 30
+STEP_CUTS = 10  # a Newton step whose end has no DtP image is halved at most this often
 NEWTON_TOL = 1e-12  # Newton step: relative change of the orbit's vertex states and period
 NEWTON_STAGNATION = 1e-9  # ... or below this, a step no longer 4x smaller than the last
 CLOSURE_TOL = 1e-6  # closure / max|z| above this: the orbit does not close
 MU_TOL = 1e-6  # |mu| T above this: an orbit of the damped system only
 COLLAPSE_TOL = 1e-6  # an orbit that moves by less than this times its size: an equilibrium
 MAX_FOLD = 12  # an orbit closing after T/k for k up to this is a k-fold cover: not its period
+ENERGY_HALVINGS = 8  # mode energy: a step in energy halved at most this often in a row
+ENERGY_STAGES = 100  # ... and at most this many steps
+ENERGY_TOL = 1e-8  # mode energy: the orbit's energy (at its start) within this of E, relative
 MULTIPLIER_TOL = 1e-6  # multipliers' estimate or check above this (relative): not vouched for
 
 
@@ -90,11 +97,69 @@ def energy_matrices(scene) -> Optional[Tuple[np.ndarray, np.ndarray]]:
     return scene.mass_matrix(), 0.5 * (K + K.T)
 
 
+# Gauss-Legendre points on [0, 1] of the potential's line integral V(x) = -int_0^1 F(s x).x ds:
+# exact for polynomial forces up to degree 2 * POTENTIAL_POINTS - 2 (in the forms), and for the
+# reported energy (numpy) up to 2 * REPORT_POINTS - 2
+POTENTIAL_POINTS = 12
+REPORT_POINTS = 40
+SYMMETRY_TOL = 1e-6  # |DF - DF^T| / (1 + |DF|) above this at a sample point: no potential
+
+
+def _gauss_01(points: int) -> Tuple[np.ndarray, np.ndarray]:
+    s, w = np.polynomial.legendre.leggauss(points)
+    return 0.5 * (s + 1.0), 0.5 * w
+
+
+class Energy:
+    """E = 1/2 v.M v + V(x) of a scene that keeps it: linear (K symmetric, undamped; V =
+    1/2 x.K x) or a force with a potential (its Jacobian symmetric: V by the line integral
+    from the origin). `of` returns None for the others (curl forces, damping)."""
+
+    def __init__(self, scene, matrices=None):
+        self.scene, self.matrices = scene, matrices
+        self.linear = matrices is not None
+
+    @classmethod
+    def of(cls, scene, x0: np.ndarray) -> Optional["Energy"]:
+        matrices = energy_matrices(scene)
+        if matrices is not None:
+            return cls(scene, matrices)
+        if getattr(scene, "linear", True) or getattr(scene.forms, "extra_dual", 0):
+            return None
+        from fem_dual.base_state import force_jacobian
+
+        rng = np.random.default_rng(0)
+        radius = max(1.0, float(np.abs(x0).max()))
+        for x in [np.asarray(x0, float)] + list(radius * rng.uniform(-1, 1, (8, scene.n))):
+            J = force_jacobian(scene.force_numpy, x)
+            if not np.all(np.isfinite(J)) or \
+                    np.abs(J - J.T).max() > SYMMETRY_TOL * (1.0 + np.abs(J).max()):
+                return None
+        return cls(scene)
+
+    def value(self, x: np.ndarray, v: np.ndarray) -> float:
+        """E at one state (numpy)."""
+        M = self.scene.mass_matrix()
+        kinetic = 0.5 * float(v @ M @ v)
+        if self.linear:
+            return kinetic + 0.5 * float(x @ self.matrices[1] @ x)
+        s, w = _gauss_01(REPORT_POINTS)
+        return kinetic - float(sum(wq * self.scene.force_numpy(sq * x) @ x
+                                   for sq, wq in zip(s, w)))
+
+    def ufl(self, x, v, force, M):
+        """E(x, v) in UFL, `force` the scene's UFL force (a function of the position)."""
+        s, w = _gauss_01(POTENTIAL_POINTS)
+        potential = -sum(float(wq) * ufl.dot(force(float(sq) * x), x) for sq, wq in zip(s, w))
+        return 0.5 * ufl.dot(v, ufl.dot(M, v)) + potential
+
+
 class OrbitProblem(SlabProblem):
     """The periodic dual action of one orbit (see the module docstring), with its derivatives in
     the period T and the unfolding rate mu, compiled once per scene, degree and cells."""
 
-    def __init__(self, scene, degree: int, cells: int, comm: MPI.Comm = MPI.COMM_SELF):
+    def __init__(self, scene, degree: int, cells: int, comm: MPI.Comm = MPI.COMM_SELF,
+                 energy: Optional[Energy] = None):
         if getattr(scene.forms, "extra_dual", 0):
             raise InputError(f"scene {scene.name} is lifted (extra dual fields); its orbits are "
                              "those of curl2d: use that scene")
@@ -141,6 +206,14 @@ class OrbitProblem(SlabProblem):
             forms[f"R_{a}"] = ufl.derivative(first * self.dx, w, test)
             for b, vb in params.items():
                 forms[f"S_{a}{b}"] = ufl.diff(first, vb) * self.dx
+        if energy is not None and not energy.linear:
+            # the energy averaged over the orbit (constant along an exact one), and its
+            # derivatives: the row of a prescribed energy
+            E = energy.ufl(self.xhat, self.vhat, self.force, c["M"])
+            forms["E"] = E * self.dx
+            forms["R_E"] = ufl.derivative(E * self.dx, w, test)
+            for a, va in params.items():
+                forms[f"E_{a}"] = ufl.diff(E, va) * self.dx
         self.forms = {k: fem.form(v) for k, v in forms.items()}
         self.momenta = CellMomenta(self)
         self._periodic = _periodic_merge(self.W, degree)
@@ -226,7 +299,8 @@ class OrbitSolver:
         self.p = problem
         self.A = fem.petsc.create_matrix(problem.forms["J"])
         self.vecs = {k: fem.petsc.create_vector(problem.forms[k])
-                     for k in ("R", "R_T", "R_mu")}
+                     for k in ("R", "R_T", "R_mu", "R_E") if k in problem.forms}
+        self.target_energy = 0.0  # mode "energy"
 
     def close(self) -> None:
         destroy_petsc(self.A, *self.vecs.values())
@@ -267,6 +341,10 @@ class OrbitSolver:
         rows = [sparse.csr_matrix(cols[a][None, :]) for a in names]
         corner = np.array([[self._scalar(f"S_{a}{b}") for b in names] for a in names])
         grad = [self._scalar(f"S_{a}") for a in names]
+        if mode == "energy":  # the row of T: the energy, not the action's stationarity in T
+            rows[0] = sparse.csr_matrix((P.T @ self._vector("R_E"))[None, :])
+            corner[0] = [self._scalar(f"E_{b}") for b in names]
+            grad[0] = self._scalar("E") - self.target_energy
         H = sparse.bmat([[J, sparse.csr_matrix(np.column_stack([cols[a] for a in names]))],
                          [sparse.vstack(rows), sparse.csr_matrix(corner)]], format="csc")
         return H, np.concatenate([R, grad]), names
@@ -294,13 +372,9 @@ class OrbitSolver:
             if not np.isfinite(delta).all():
                 raise SolveError("the orbit's Newton system is singular; the orbit is not "
                                  "isolated in this mode, or the guess is too far")
-            k = len(names)
-            dw = P @ delta[:-k]
-            p.w.x.array[:] += dw
             T = float(p.T_c.value)
-            for name, d in zip(names, delta[-k:]):
-                target = p.T_c if name == "T" else p.mu_c
-                target.value = float(target.value) + d
+            delta = self._step(delta, names)
+            k = len(names)
             if not float(p.T_c.value) > 0:
                 raise SolveError(f"the period went to {float(p.T_c.value):.6g} in Newton; give a "
                                  "better guess (--period)")
@@ -322,6 +396,29 @@ class OrbitSolver:
         raise SolveError(f"the orbit's Newton did not converge in {NEWTON_MAX_IT} iterations "
                          f"(last relative step {steps[-1]:.3g}); give a better guess (--period, "
                          "--x0, --v0) or a smaller continuation step")
+
+    def _step(self, delta: np.ndarray, names: List[str]) -> np.ndarray:
+        """Take the Newton step `delta` (merged dual dofs, then the unknowns `names`), halved
+        while the DtP map has no solution at its end (at most STEP_CUTS times); returns the step
+        taken. Raises SolveError when no cut helps."""
+        p, k = self.p, len(names)
+        targets = [p.T_c if name == "T" else p.mu_c for name in names]
+        w0, values0 = p.w.x.array.copy(), [float(c.value) for c in targets]
+        for cut in range(STEP_CUTS + 1):
+            taken = delta * 0.5 ** cut
+            p.w.x.array[:] = w0 + p._periodic @ taken[:-k]
+            for target, value, d in zip(targets, values0, taken[-k:]):
+                target.value = value + d
+            try:
+                self._update_dtp()
+                return taken
+            except SolveError:
+                if cut == STEP_CUTS:
+                    p.w.x.array[:] = w0
+                    for target, value in zip(targets, values0):
+                        target.value = value
+                    self._update_dtp()
+                    raise
 
     def orbit_vertices(self) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(s, x, v) at the vertices from s = 0 to 1 (the momenta of the cells, averaged)."""
@@ -499,6 +596,19 @@ def multiplier_distance(a: np.ndarray, b: np.ndarray) -> float:
     return float((cost[rows, cols] / (1.0 + np.abs(a[rows]))).max())
 
 
+class OrbitGuess:
+    """An orbit found as the guess of another (its vertex values, Hermite-interpolated at the
+    base nodes: fem_dual.dense, order 8), in place of a run's motion."""
+
+    def __init__(self, scene, t: np.ndarray, x: np.ndarray, v: np.ndarray):
+        self.scene, self.t, self.x, self.v = scene, t, x, v
+
+    def at(self, times: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        from fem_dual.dense import hermite_at
+
+        return hermite_at(self.scene, self.t, self.x, self.v, times)
+
+
 class GuessMotion:
     """The guess of an orbit: the motion from (x0, v0) over T0, by fem-dual (--rtol 1e-9, p = 4,
     4 cells per slab), on one compiled simulation reused for every guess of a family."""
@@ -529,10 +639,11 @@ class GuessMotion:
 class Orbits:
     """Compiled orbit problems of one scene kind, degree and cells; solves orbits and families."""
 
-    def __init__(self, scene, degree: int, cells: int):
+    def __init__(self, scene, degree: int, cells: int, energy: Optional[Energy] = None):
+        """energy: compile the energy row of mode "energy" (a force with a potential)."""
         tic = time.perf_counter()
         with quiet_jit_logging():
-            self.problem = OrbitProblem(scene, degree, cells)
+            self.problem = OrbitProblem(scene, degree, cells, energy=energy)
             self.solver = OrbitSolver(self.problem)
         self.compile_s = time.perf_counter() - tic
         self.scene = scene
@@ -544,6 +655,51 @@ class Orbits:
         self.guess.close()
         self.flow.close()
 
+    def _newton(self, guess, T0: float, mode: str, energy: float = 0.0):
+        """(history, s, x, v): the orbit's Newton from zero dual fields on the base state
+        `guess` (a run over T0). Raises SolveError with advice."""
+        p = self.problem
+        p.set_base(np.hstack(guess.at(T0 * p.base_nodes)))
+        p.w.x.array[:] = 0.0
+        p.T_c.value, p.mu_c.value = T0, 0.0
+        p.start_dtp()
+        self.solver.target_energy = energy
+        try:
+            history = self.solver.solve(mode)
+            return (history, *self.solver.orbit_vertices())
+        except SolveError as exc:
+            raise SolveError(_orbit_advice(str(exc))) from None
+
+    def _reach_energy(self, scene, guess, T0: float, energy: float, has: Energy):
+        """Newton in mode energy from the guess; when that fails, the closest orbit first, then
+        steps in energy, each from the orbit before (its motion as the base state), halved when
+        Newton fails and doubled after a success. Raises SolveError naming the energy reached."""
+        try:
+            return self._newton(guess, T0, "energy", energy)
+        except SolveError:
+            pass
+        history, s, x, v = self._newton(guess, T0, "closest")
+        reached, period = has.value(x[0], v[0]), float(self.problem.T_c.value)
+        step, stages, halvings = energy - reached, 0, 0
+        while True:
+            goal = energy if abs(step) >= abs(energy - reached) else reached + step
+            start = OrbitGuess(scene, period * s, x, v)
+            try:
+                history, s, x, v = self._newton(start, period, "energy", goal)
+            except SolveError as exc:
+                halvings += 1
+                if halvings > ENERGY_HALVINGS or stages >= ENERGY_STAGES:
+                    raise SolveError(f"mode energy reached E = {reached:.10g} on the way to "
+                                     f"{energy:.10g} and could not go on ({exc}); give a guess "
+                                     "nearer that energy") from None
+                step /= 2
+                continue
+            stages, halvings = stages + 1, 0
+            reached, period = goal, float(self.problem.T_c.value)
+            if goal == energy:
+                return {**history, "energy_stages": stages}, s, x, v
+            step *= 1.5
+
     def solve(self, scene, x0: np.ndarray, v0: np.ndarray, T0: float, mode: str = "closest",
               energy: Optional[float] = None, check: bool = True,
               guess=None, companion: Optional["Orbits"] = None) -> OrbitResult:
@@ -552,42 +708,45 @@ class Orbits:
         flow; `companion`: the orbits of degree p + 1, whose orbit from the same guess is the
         error estimate. Raises SolveError."""
         p = self.problem
-        matrices = energy_matrices(scene)
-        if mode == "energy" and matrices is None:
-            raise InputError(f"mode energy needs a scene with an energy (linear, K symmetric, "
-                             f"undamped); {scene.name} has none")
+        has = Energy.of(scene, x0)
+        if mode == "energy" and has is None:
+            raise InputError(f"mode energy needs a scene with an energy (linear with K "
+                             f"symmetric and no damping, or a force with a potential); "
+                             f"{scene.name} has none")
+        if mode == "energy" and not has.linear and "E" not in p.forms:
+            raise InputError("mode energy: these orbits were compiled without the energy row")
+        # a linear family has one period: its orbits of energy E are the closest one scaled
+        linear_energy = mode == "energy" and has.linear
         if scene is not self.scene:
             p.set_scene_constants(scene)
             self.scene = scene
         tic = time.perf_counter()
         if guess is None:
             guess = self.guess(scene, x0, v0, T0)
-        p.set_base(np.hstack(guess.at(T0 * p.base_nodes)))
         guess_s = time.perf_counter() - tic
         tic = time.perf_counter()
-        p.w.x.array[:] = 0.0
-        p.T_c.value, p.mu_c.value = T0, 0.0
-        p.start_dtp()
-        try:
-            history = self.solver.solve("closest" if mode == "energy" else mode)
-            s, x, v = self.solver.orbit_vertices()
-        except SolveError as exc:
-            raise SolveError(_orbit_advice(str(exc))) from None
-        if matrices is not None:
-            M, K = matrices
-            orbit_energy = 0.5 * float(v[0] @ M @ v[0] + x[0] @ K @ x[0])
-            if mode == "energy":  # a linear family at one period: the amplitude sets E
-                if not orbit_energy > 0:
-                    raise SolveError("the orbit found has no energy to scale to E")
-                scale = np.sqrt(energy / orbit_energy)
-                x, v, orbit_energy = x * scale, v * scale, energy
+        if mode == "energy" and not linear_energy:
+            history, s, x, v = self._reach_energy(scene, guess, T0, energy, has)
+        else:
+            history, s, x, v = self._newton(guess, T0, "closest" if linear_energy else mode)
+        orbit_energy = has.value(x[0], v[0]) if has is not None else None
+        if linear_energy:  # the amplitude sets E
+            if not orbit_energy > 0:
+                raise SolveError("the orbit found has no energy to scale to E")
+            scale = np.sqrt(energy / orbit_energy)
+            x, v, orbit_energy = x * scale, v * scale, has.value(x[0] * scale, v[0] * scale)
         solve_s = time.perf_counter() - tic
         T, mu = float(p.T_c.value), float(p.mu_c.value)
         z0 = np.concatenate([x[0], v[0]])
         tic = time.perf_counter()
         other = None  # the same orbit at degree p + 1, from the same guess
         if companion is not None and check:
-            other = companion.solve(scene, x0, v0, T0, mode, energy, check=False, guess=guess)
+            if history.get("energy_stages"):  # from the orbit found, not again in stages
+                other = companion.solve(scene, x[0], v[0], T, mode, energy, check=False,
+                                        guess=OrbitGuess(scene, T * s, x, v))
+            else:
+                other = companion.solve(scene, x0, v0, T0, mode, energy, check=False,
+                                        guess=guess)
         estimate_s = time.perf_counter() - tic
         tic = time.perf_counter()
         zT, Phi_check, parts = (monodromy(scene, z0, T) if check
@@ -632,7 +791,7 @@ class Orbits:
                                      "monodromy_s": flow_s},
             degree=p.degree, cells=p.mesh.cells,
             guess={"x0": list(map(float, x0)), "v0": list(map(float, v0)), "period": T0},
-            energy=orbit_energy if matrices is not None else None)
+            energy=orbit_energy)
         if other is not None:
             result.estimate.update(_differences(result, other), degree=other.degree)
             result.timings["estimate_s"] = estimate_s
@@ -652,6 +811,10 @@ class Orbits:
             result.message = (f"the orbit collapsed onto an equilibrium: it moves by "
                               f"{extent:.3g} around {scale:.3g}; give a guess near an orbit "
                               "(--period near one, a larger amplitude in --x0, --v0)")
+        elif check and mode == "energy" and not abs(orbit_energy - energy) <= ENERGY_TOL * energy:
+            result.status = "failed"
+            result.message = (f"the orbit's energy is {orbit_energy:.12g}, not {energy:.12g}; "
+                              "raise --cells or give a guess nearer that energy")
         elif check and folds:
             k = folds[-1]
             result.status = "failed"
@@ -749,8 +912,9 @@ def orbit_family(scene, params: Dict[str, Any], x0: np.ndarray, v0: np.ndarray, 
     "message"), what was computed before a failure kept."""
     from fem_dual.config import _scene
 
-    orbits = Orbits(scene, degree, cells)
-    companion = Orbits(scene, degree + 1, cells) if with_estimate else None
+    has = Energy.of(scene, x0) if mode == "energy" else None
+    orbits = Orbits(scene, degree, cells, has)
+    companion = Orbits(scene, degree + 1, cells, has) if with_estimate else None
     out: Dict[str, Any] = {}
     steps: List[Dict[str, Any]] = []
     try:

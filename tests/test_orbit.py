@@ -173,6 +173,8 @@ def _cli(args, tmp_path):
     (["ziegler", "--period", "6", "--mode", "energy=1"], "energy"),
     (["ziegler", "--param", "P=0", "--period", "6", "--mode", "energy=-1"], "-1"),
     (["curl3d", "--period", "6", "--mode", "energy=1"], "energy"),
+    (["force", "--F", CURL["F"], "--x0", "0.3,0", "--period", "6.3", "--mode", "energy=1"],
+     "energy"),
     (["ziegler", "--period", "6", "--continue", "Q=0:1:3"], "Q"),
     (["ziegler", "--period", "6", "--continue", "P=0:1:0"], "steps"),
     (["ziegler", "--period", "6", "--continue", "P=0:1"], "P=0:1"),
@@ -270,3 +272,54 @@ def test_an_equilibrium_or_a_multiple_period_is_no_orbit():
     finally:
         orbits.close()
     assert r.status == "failed" and "T/2 = 6.283187" in r.message
+
+
+def _duffing_period(E):
+    """The period of x'' = -x - x^3 at energy E = v^2/2 + x^2/2 + x^4/4, by quadrature of a
+    smooth integrand (x = A sin(theta), V(A) = E)."""
+    from scipy.optimize import brentq
+
+    A = brentq(lambda a: 0.5 * a ** 2 + 0.25 * a ** 4 - E, 0.0, 10.0, xtol=1e-15)
+    s, w = np.polynomial.legendre.leggauss(80)  # the integrand is analytic: converged
+    th = np.pi / 4 * (s + 1)
+    return 4 * np.pi / 4 * float(w @ (A / np.sqrt(A ** 2 + 0.5 * A ** 4 * (1 + np.sin(th) ** 2))))
+
+
+def test_energy_mode_on_forces_with_a_potential():
+    """--mode energy=E for a force with a potential (its Jacobian symmetric): Duffing's period
+    at E against quadrature, near the guess's energy (one Newton) and far from it (steps in
+    energy); a 2-dof potential's orbit has the energy E of an independent potential and closes
+    under DOP853; a curl force has no energy."""
+    from fem_dual.orbit import Energy
+
+    duffing = _scene("force", {"F": "-x - x**3"})
+    has = Energy.of(duffing, np.array([0.5]))
+    assert has is not None and not has.linear
+    orbits = Orbits(duffing, 4, 64, has)
+    try:
+        for E, stages in ((0.16, False), (1.0, True)):  # the guess's energy is 0.139
+            r = orbits.solve(duffing, np.array([0.5]), np.zeros(1), 6.0, "energy", E)
+            assert r.status == "ok", r.message
+            assert abs(r.period - _duffing_period(E)) <= 1e-11
+            assert abs(r.energy - E) <= 1e-10 and bool(r.newton.get("energy_stages")) == stages
+    finally:
+        orbits.close()
+    force = _scene("force", {"F": "-x - x**3 - x*y, -2*y - 0.5*x**2"})
+    has = Energy.of(force, np.array([0.3, 0.0]))
+    orbits = Orbits(force, 4, 64, has)
+    try:
+        r = orbits.solve(force, np.array([0.3, 0.0]), np.zeros(2), 6.3, "energy", 0.06)
+    finally:
+        orbits.close()
+    assert r.status == "ok", r.message
+    (x, y), (u, w) = r.x[0], r.v[0]
+    assert abs(0.5 * (u * u + w * w) + 0.5 * x * x + y * y + 0.25 * x ** 4 + 0.5 * x * x * y
+               - 0.06) <= 1e-10
+
+    def rhs(_t, z):
+        return [z[2], z[3], -z[0] - z[0] ** 3 - z[0] * z[1], -2 * z[1] - 0.5 * z[0] ** 2]
+
+    z0 = np.array([x, y, u, w])
+    end = solve_ivp(rhs, (0, r.period), z0, method="DOP853", rtol=1e-13, atol=1e-13).y[:, -1]
+    assert np.abs(end - z0).max() <= 1e-10
+    assert Energy.of(_scene("force", CURL), np.array([0.3, 0.0])) is None
