@@ -470,7 +470,11 @@ def _orbit(args, params, comm) -> int:
         from fem_dual.config import _scene
 
         for value in continuation[1]:
-            _scene(config.scene.name, {**params, continuation[0]: value})
+            member = _scene(config.scene.name, {**params, continuation[0]: value})
+            if mode == "energy" and Energy.of(member, config.x0) is None:
+                raise InputError(f"mode energy: {config.scene.name} at {continuation[0]}="
+                                 f"{value:.6g} has no energy (linear with K symmetric and no "
+                                 "damping, or a force with a potential)")
     if mode == "energy" and Energy.of(config.scene, config.x0) is None:
         raise InputError(f"mode energy needs a scene with an energy (linear with K symmetric "
                          f"and no damping, or a force with a potential); {config.scene.name} "
@@ -518,8 +522,12 @@ def _orbit_on_root(args, config, params, mode, energy, continuation, dirs):
         print(json.dumps(record, allow_nan=False), file=_json_out(), flush=True)
     else:
         print(orbit_summary(record))
+    if record["status"] == "interrupted":
+        print(f"fem-dual: stopped: {_one_line(record['message'])}", file=sys.stderr)
+        return 128 + faults.requested()
     if record["status"] != "ok":
-        print(f"fem-dual: no orbit: {_one_line(record['message'])}", file=sys.stderr)
+        what = "output failed" if problem else "no orbit"
+        print(f"fem-dual: {what}: {_one_line(record['message'])}", file=sys.stderr)
         return SolveError.exit_status
     return 0
 
@@ -566,7 +574,7 @@ def _main(argv: Optional[Sequence[str]], comm: "Optional[MPI.Comm]") -> int:
         if args.command == "scenes":
             _print0(comm, _list_scenes())
             return 0
-        if args.command == "run":
+        if args.command in ("run", "orbit"):  # orbit: a continuation stops between orbits
             faults.arm()
         if getattr(args, "scene_file", None):
             from fem_dual.scenes import load_scene_file

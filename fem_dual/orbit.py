@@ -36,6 +36,7 @@ monodromy's multipliers must agree with fem-dual's.
 """
 from __future__ import annotations
 
+import signal
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -49,6 +50,7 @@ from petsc4py import PETSc
 from scipy import sparse
 from scipy.sparse import linalg as spla
 
+from fem_dual import faults
 from fem_dual.compat import (CellPointEvaluator, constant, destroy_petsc, quiet_jit_logging,
                              vector_space)
 from fem_dual.errors import InputError, SolveError
@@ -920,6 +922,12 @@ def orbit_family(scene, params: Dict[str, Any], x0: np.ndarray, v0: np.ndarray, 
     try:
         values = [None] if continuation is None else continuation[1]
         for k, value in enumerate(values):
+            signum = faults.requested()
+            if k > 0 and signum:  # SIGINT/SIGTERM: stop after the orbit at hand
+                out["status"], out["message"] = "interrupted", (
+                    f"interrupted by {signal.Signals(signum).name} before "
+                    f"{continuation[0]}={value:.6g}; the {k} orbits done are kept")
+                break
             member = scene if value is None else _scene(scene.name, {**params,
                                                                      continuation[0]: value})
             try:
@@ -932,12 +940,15 @@ def orbit_family(scene, params: Dict[str, Any], x0: np.ndarray, v0: np.ndarray, 
                 if companion is not None and k == 0:
                     result.timings["compile_s"] += companion.compile_s
             except SolveError as exc:
-                if continuation is None or not steps:
+                if continuation is None:
                     raise
                 out["status"], out["message"] = "failed", (
+                    f"continuation stopped at {continuation[0]}={value:.6g} (its first value): "
+                    f"{exc}" if not steps else
                     f"continuation stopped at {continuation[0]}={value:.6g} (last orbit at "
                     f"{continuation[0]}={values[k - 1]:.6g}): {exc}; a smaller step may pass "
                     "it, or this is a fold or bifurcation")
+                out.setdefault("scene", scene.name)
                 break
             record = result.to_dict()
             if continuation is None:
@@ -998,15 +1009,16 @@ def orbit_summary(record: Dict[str, Any]) -> str:
 
 
 def write_orbit_files(record: Dict[str, Any], dirs: Dict[str, Any]) -> Optional[str]:
-    """orbit.json and orbit.csv into dirs["out"], orbit.png (and continuation.png) into
-    dirs["plot"]; the reason a write failed, or None."""
+    """orbit.csv and orbit.json into dirs["out"], orbit.png (and continuation.png) into
+    dirs["plot"]; the reason a write failed, or None. orbit.json comes last and says what
+    failed when a write before it did (status "failed", never an "ok" beside a failure)."""
     import json
     from pathlib import Path
 
+    problem = None
     try:
         if dirs.get("out") is not None:
             out = Path(dirs["out"])
-            (out / "orbit.json").write_text(json.dumps(record, allow_nan=False) + "\n")
             n = len(record["x"][0])
             head = ",".join(["t"] + [f"x{i + 1}" for i in range(n)] + [f"v{i + 1}" for i in
                                                                        range(n)])
@@ -1016,8 +1028,16 @@ def write_orbit_files(record: Dict[str, Any], dirs: Dict[str, Any]) -> Optional[
         if dirs.get("plot") is not None:
             plot_orbit(record, Path(dirs["plot"]))
     except OSError as exc:
-        return f"writing the output failed: {exc}"
-    return None
+        problem = f"writing the output failed: {exc}"
+    if dirs.get("out") is None:
+        return problem
+    written = record if problem is None else {**record, "status": "failed", "message": problem}
+    try:
+        (Path(dirs["out"]) / "orbit.json").write_text(json.dumps(written, allow_nan=False)
+                                                      + "\n")
+    except OSError as exc:
+        problem = problem or f"writing the output failed: {exc}"
+    return problem
 
 
 def plot_orbit(record: Dict[str, Any], directory) -> List[Any]:

@@ -188,6 +188,9 @@ def _cli(args, tmp_path):
     # a member past the first is bad: refused before any orbit is computed
     (["force", "--F", "-x - 0.1235*x**3", "--x0", "0.3", "--period", "6.3", "--continue",
       "m=1:0:2"], "m=0"),
+    # ... or loses the energy its mode needs
+    (["ziegler", "--x0", "-0.074,-0.1", "--period", "16", "--mode", "energy=1", "--param",
+      "P=0", "--continue", "P=0:1:2"], "P=0.5"),
 ])
 def test_bad_input_is_one_line_and_exit_2(tmp_path, args, named):
     proc = _cli(args, tmp_path)
@@ -219,6 +222,44 @@ def test_continuation_follows_the_mode_to_flutter_and_stops_there(tmp_path):
         assert step["period"] == pytest.approx(2 * np.pi / omega[0], rel=1e-9)
     assert "P=2.2" in record["message"]  # Ziegler's flutter load is 2.09 for these parameters
     assert (tmp_path / "o" / "orbit.json").is_file() and (tmp_path / "p" / "continuation.png").is_file()
+
+
+def test_a_continuation_failing_at_its_first_value_keeps_its_shape(tmp_path):
+    proc = _cli(["ziegler", "--x0", "0.1,0.16", "--period", "13", "--cells", "16",
+                 "--continue", "P=3:3.2:1", "--json", "--no-estimate"], tmp_path)
+    assert proc.returncode == 3, proc.stderr
+    record = json.loads(proc.stdout)
+    assert record["status"] == "failed" and "P=3" in record["message"]
+    assert record["continuation_parameter"] == "P" and isinstance(record["continuation"], list)
+
+
+def test_a_failed_write_is_no_ok_in_orbit_json(tmp_path):
+    (tmp_path / "d" / "orbit.csv").mkdir(parents=True)  # orbit.csv cannot be written
+    proc = _cli(["force", "--F", CURL["F"], "--x0", "0.3,0", "--period", "6.3", "--cells", "16",
+                 "--no-estimate", "--out", "d", "--json"], tmp_path)
+    assert proc.returncode == 3 and "output failed" in proc.stderr
+    assert json.loads((tmp_path / "d" / "orbit.json").read_text())["status"] == "failed"
+    assert json.loads(proc.stdout)["status"] == "failed"
+
+
+def test_sigint_stops_a_continuation_between_orbits_and_keeps_them(tmp_path):
+    import signal
+    import time
+
+    proc = subprocess.Popen(FEM_DUAL + ["orbit", "force", "--F", "-x - a*y**2, -2*y - a*x**2",
+                                        "--param", "a=0.5", "--x0", "0.3,0", "--period", "6.3",
+                                        "--cells", "16", "--no-estimate", "--continue",
+                                        "a=0.5:0.6:400", "--json"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            stdin=subprocess.DEVNULL, cwd=tmp_path)
+    time.sleep(8)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and "stopped" in err
+    record = json.loads(out)
+    assert record["status"] == "interrupted" and len(record["continuation"]) >= 1
+    assert all(step["status"] == "ok" for step in record["continuation"])
 
 
 @pytest.mark.mpi
