@@ -51,6 +51,15 @@ def test_ziegler_mode_periods_are_two_pi_over_omega(ziegler_orbits, mode):
     assert all(z.real == pytest.approx(np.cos(other), abs=1e-9) for z in lam)
 
 
+def _one_orbit(scene, x0, T0, degree=4, cells=64, mode="closest", energy=None, has=None):
+    """One orbit from the motion from (x0, 0) over T0, on orbits compiled for it alone."""
+    orbits = Orbits(scene, degree, cells, has)
+    try:
+        return orbits.solve(scene, np.asarray(x0, float), np.zeros(scene.n), T0, mode, energy)
+    finally:
+        orbits.close()
+
+
 def _multiplier_error(r, exact):
     """The largest distance of the orbit's nontrivial multipliers to `exact` (complex)."""
     lam = sorted((complex(*m) for m in r.multipliers), key=lambda z: abs(z - 1))[2:]
@@ -124,11 +133,7 @@ def test_period_and_closure_converge_at_order_2p(degree):
 
 def test_a_nonlinear_orbit_closes_under_an_independent_integration():
     force = _scene("force", CURL)
-    orbits = Orbits(force, 4, 64)
-    try:
-        r = orbits.solve(force, np.array([0.3, 0.0]), np.zeros(2), 6.3)
-    finally:
-        orbits.close()
+    r = _one_orbit(force, [0.3, 0.0], 6.3, cells=64)
     assert r.status == "ok" and r.newton["iterations"] <= 8
     z0 = np.concatenate([r.x[0], r.v[0]])
 
@@ -286,11 +291,7 @@ def test_multipliers_it_cannot_vouch_for_are_a_failure(monkeypatch):
 
     monkeypatch.setattr(orbit, "FLOW_MAX_CELLS", 8)
     force = _scene("force", CURL)
-    orbits = Orbits(force, 4, 8)
-    try:
-        r = orbits.solve(force, np.array([0.3, 0.0]), np.zeros(2), 6.3)
-    finally:
-        orbits.close()
+    r = _one_orbit(force, [0.3, 0.0], 6.3, cells=8)
     assert r.status == "failed" and "multipliers are uncertain" in r.message
     assert r.estimate["multipliers"] > orbit.MULTIPLIER_TOL
 
@@ -300,18 +301,10 @@ def test_an_equilibrium_or_a_multiple_period_is_no_orbit():
     equilibrium (it moves by 1e-7): failed. A guess over twice (three times) the period finds
     the orbit run twice (three times): failed, naming the period. (Found by a hostile test.)"""
     shifted = _scene("force", {"F": "-(x - 1)"})
-    orbits = Orbits(shifted, 4, 64)
-    try:
-        r = orbits.solve(shifted, np.array([1.001]), np.zeros(1), 6.2832, mode="period")
-    finally:
-        orbits.close()
+    r = _one_orbit(shifted, [1.001], 6.2832, cells=64, mode="period")
     assert r.status == "failed" and "equilibrium" in r.message
     force = _scene("force", CURL)
-    orbits = Orbits(force, 4, 64)
-    try:
-        r = orbits.solve(force, np.array([0.3, 0.0]), np.zeros(2), 12.6)
-    finally:
-        orbits.close()
+    r = _one_orbit(force, [0.3, 0.0], 12.6, cells=64)
     assert r.status == "failed" and "T/2 = 6.283187" in r.message
 
 
