@@ -514,7 +514,8 @@ def _orbit_on_root(args, config, params, mode, energy, continuation, dirs):
                                   config.degree, config.cells, mode, energy, continuation,
                                   with_estimate=not args.no_estimate)
         except SolveError as exc:
-            record = {"status": "failed", "message": str(exc), "scene": config.scene.name}
+            record = {"status": "interrupted" if isinstance(exc, faults.Interrupted) else
+                      "failed", "message": str(exc), "scene": config.scene.name}
     problem = write_orbit_files(record, dirs) if record.get("period") is not None else None
     if problem:
         record["status"], record["message"] = "failed", problem

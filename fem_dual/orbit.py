@@ -359,6 +359,7 @@ class OrbitSolver:
         self._update_dtp()
         z_last = np.hstack(self.orbit_vertices()[1:])
         for it in range(NEWTON_MAX_IT):
+            _stop_if_asked("the orbit's Newton")
             H, g, names = self.system(mode)
             residuals.append(float(np.abs(g).max()))
             if not np.isfinite(g).all():
@@ -549,6 +550,7 @@ class SlabFlow:
         z_c = np.array(z0 if other_z0 is None else other_z0, dtype=float)
         Phi = Phi_c = np.eye(2 * n)
         for k in range(slabs):
+            _stop_if_asked("the monodromy")
             z, z_c, psi, psi_c = self._slab(z, z_c, k * dt, k * dt_c, dt, dt_c, FLOW_HALVINGS)
             Phi, Phi_c = psi @ Phi, psi_c @ Phi_c
         if not (np.isfinite(Phi).all() and np.isfinite(Phi_c).all()):
@@ -569,6 +571,8 @@ class SlabFlow:
             other = companion.solve_slab(z_c, t0_c, dt_c, start=sim)
             psi_c = np.column_stack([companion.tangent(z_c, e, t0_c, dt_c, other,
                                                        central=True)[-1] for e in unit])
+        except faults.Interrupted:  # a signal is no failure to work around
+            raise
         except SolveError as exc:
             if halvings == 0:
                 raise SolveError(f"fem-dual's flow along the orbit failed at t = {t0:.6g}: "
@@ -583,6 +587,15 @@ class SlabFlow:
     def close(self) -> None:
         if self.sim is not None:
             self.sim.close()
+
+
+def _stop_if_asked(what: str) -> None:
+    """Raise faults.Interrupted when SIGINT/SIGTERM asked to stop (fem-dual orbit arms them):
+    an orbit stops between Newton iterations, flow slabs and guess slabs."""
+    signum = faults.requested()
+    if signum:
+        raise faults.Interrupted(f"interrupted by {signal.Signals(signum).name} in {what}",
+                                 signum)
 
 
 def nontrivial(lam: np.ndarray) -> np.ndarray:
@@ -632,6 +645,8 @@ class GuessMotion:
         if self.sim is None:
             self.sim = Simulation.for_config(config, MPI.COMM_SELF)
         result = self.sim.run(config)
+        if result.status == "interrupted":
+            _stop_if_asked("the guess")
         if result.status != "ok":
             raise SolveError(f"the guess (the motion from x0, v0 over {T0:g}) failed: "
                              f"{result.message}")
@@ -673,6 +688,8 @@ class Orbits:
         try:
             history = self.solver.solve(mode)
             return (history, *self.solver.orbit_vertices())
+        except faults.Interrupted:  # a signal is no failure to work around
+            raise
         except SolveError as exc:
             raise SolveError(_orbit_advice(str(exc))) from None
 
@@ -682,6 +699,8 @@ class Orbits:
         Newton fails and doubled after a success. Raises SolveError naming the energy reached."""
         try:
             return self._newton(guess, T0, "energy", energy)
+        except faults.Interrupted:  # a signal is no failure to work around
+            raise
         except SolveError:
             pass
         history, s, x, v = self._newton(guess, T0, "closest")
@@ -692,6 +711,8 @@ class Orbits:
             start = OrbitGuess(scene, period * s, x, v)
             try:
                 history, s, x, v = self._newton(start, period, "energy", goal)
+            except faults.Interrupted:  # a signal is no failure to work around
+                raise
             except SolveError as exc:
                 halvings += 1
                 if halvings > ENERGY_HALVINGS or stages >= ENERGY_STAGES:
@@ -943,6 +964,13 @@ def orbit_family(scene, params: Dict[str, Any], x0: np.ndarray, v0: np.ndarray, 
                 result.timings["guess_s"] = guess_s
                 if companion is not None and k == 0:
                     result.timings["compile_s"] += companion.compile_s
+            except faults.Interrupted as exc:
+                if continuation is None:
+                    raise
+                out["status"], out["message"] = "interrupted", (
+                    f"{exc} at {continuation[0]}={value:.6g}; the {k} orbits done are kept")
+                out.setdefault("scene", scene.name)
+                break
             except SolveError as exc:
                 if continuation is None:
                     raise
