@@ -648,8 +648,9 @@ class GuessMotion:
         if result.status == "interrupted":
             _stop_if_asked("the guess")
         if result.status != "ok":
-            raise SolveError(f"the guess (the motion from x0, v0 over {T0:g}) failed: "
-                             f"{result.message}")
+            reason = result.message.split("; ")[0]  # without a run's advice (--rtol, slabs)
+            raise SolveError(f"the guess (the motion from x0, v0 over {T0:g}) could not be "
+                             f"computed: {reason}; give another guess (--x0, --v0, --period)")
         return result
 
     def close(self) -> None:
@@ -828,16 +829,17 @@ class Orbits:
             result.check = {"multipliers_dop853": [[float(z.real), float(z.imag)]
                                                    for z in lam_check],
                             "multipliers": multipliers_check}
-        if check and not abs(mu) * T <= MU_TOL:
-            result.status = "failed"
-            result.message = (f"the unfolding damping converged to mu = {mu:.3g}, not 0: the "
-                              "guess is near no orbit of the undamped system (past flutter, or "
-                              "a motion that is not periodic); give a better guess")
-        elif check and not extent > COLLAPSE_TOL * scale:
+        if check and not extent > COLLAPSE_TOL * scale:
             result.status = "failed"
             result.message = (f"the orbit collapsed onto an equilibrium: it moves by "
                               f"{extent:.3g} around {scale:.3g}; give a guess near an orbit "
                               "(--period near one, a larger amplitude in --x0, --v0)")
+        elif check and not abs(mu) * T <= MU_TOL:
+            result.status = "failed"
+            result.message = (f"the unfolding damping converged to mu = {mu:.3g}, not 0: the "
+                              "guess is near no orbit of the undamped system (past flutter, or "
+                              "a motion that is not periodic), or the mesh is too coarse for it; "
+                              "give a better guess, or raise --cells or --degree")
         elif check and mode == "energy" and not abs(orbit_energy - energy) <= ENERGY_TOL * energy:
             result.status = "failed"
             result.message = (f"the orbit's energy is {orbit_energy:.12g}, not {energy:.12g}; "
@@ -891,7 +893,7 @@ def check_resolution(scene, x0: np.ndarray, v0: np.ndarray, T0: float, cells: in
 def _orbit_advice(message: str) -> str:
     """A slab solver's advice, turned into an orbit's."""
     return message.replace("use smaller slabs or larger alpha",
-                           "give a better guess (--period, --x0, --v0), or raise alpha")
+                           "give a better guess (--period, --x0, --v0)")
 
 
 def parse_continuation(text: str, scene) -> Tuple[str, np.ndarray]:
@@ -986,7 +988,8 @@ def orbit_family(scene, params: Dict[str, Any], x0: np.ndarray, v0: np.ndarray, 
             if continuation is None:
                 out.update(record)
                 break
-            steps.append({continuation[0]: float(value), **{
+            steps.append({continuation[0]: float(value), "x0": record["x"][0],
+                          "v0": record["v"][0], **{
                 key: record[key] for key in ("period", "mu", "multipliers",
                                              "nontrivial_multipliers", "check", "closure",
                                              "closure_relative", "energy", "estimate", "status",

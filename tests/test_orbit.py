@@ -221,10 +221,16 @@ def test_continuation_follows_the_mode_to_flutter_and_stops_there(tmp_path):
     record = json.loads(proc.stdout)
     steps = record["continuation"]
     assert [s["P"] for s in steps[:3]] == pytest.approx([1.6, 1.8, 2.0])
-    for step in steps[:3]:  # each equals the slow mode's period at its load
-        _, omega, _ = ziegler_modes({"P": step["P"]})
+    for step in steps[:3]:  # each equals the slow mode's period at its load, and closes
+        scene, omega, _ = ziegler_modes({"P": step["P"]})
         assert step["status"] == "ok"
         assert step["period"] == pytest.approx(2 * np.pi / omega[0], rel=1e-9)
+        M, K = scene.mass_matrix(), scene.stiffness_matrix()
+        A = np.block([[np.zeros((2, 2)), np.eye(2)], [-np.linalg.solve(M, K), np.zeros((2, 2))]])
+        z0 = np.concatenate([step["x0"], step["v0"]])
+        closure = np.abs(sla.expm(A * step["period"]) @ z0 - z0).max()  # 32 cells: ~4e-9
+        assert closure <= 1e-7 * np.abs(z0).max()
+        assert closure == pytest.approx(step["closure"], rel=1e-2, abs=1e-12)  # as reported
     assert "P=2.2" in record["message"]  # Ziegler's flutter load is 2.09 for these parameters
     assert (tmp_path / "o" / "orbit.json").is_file() and (tmp_path / "p" / "continuation.png").is_file()
 
