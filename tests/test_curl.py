@@ -96,6 +96,34 @@ def test_jacobian_symmetric(scene):
     assert np.abs(dense - dense.T).max() <= 1e-12 * np.abs(dense).max()
 
 
+def test_the_implicit_map_is_solved_once_per_dual_state_and_start():
+    """SNES asks for the Jacobian where it took the last residual: the pointwise DtP solve is
+    skipped there, and redone (to the same values as from scratch) when the dual state or the
+    start state changes."""
+    cls = get_scene("curl2d")
+    problem = SlabProblem(cls(), degree=2, cells=8, comm=MPI.COMM_SELF)
+    x0, v0 = np.array(cls.default_x0), np.array(cls.default_v0)
+    problem.set_slab(x0, v0, 0.5)
+    solver = NewtonSlabSolver(problem, "test_once_", {})
+    solver.solve()
+    calls = []
+    solve = problem.pointwise.solve
+    problem.pointwise.solve = lambda comm: calls.append(1) or solve(comm)
+    solver._update(solver.x)
+    assert calls == []  # the converged state is the one held
+    problem.set_start(x0 * 1.01, v0)
+    solver._update(solver.x)
+    assert len(calls) == 1
+    moved = problem.pointwise.X.x.array.copy()
+    problem.pointwise.X.x.array[:] = 0.0  # from scratch: the same root
+    problem.pointwise.reset(x0 * 1.01)
+    solve(MPI.COMM_SELF)
+    assert np.abs(problem.pointwise.X.x.array - moved).max() <= 1e-13
+    problem.set_start(x0, v0)
+    solver._update(solver.x)
+    assert len(calls) == 2
+
+
 @pytest.mark.mpi
 def test_hand_derived_lifted_and_user_defined_agree():
     cfg = dict(T=2.0, cells=40, degree=3, slabs=4)
