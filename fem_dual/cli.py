@@ -439,7 +439,7 @@ def _orbit(args, params, comm) -> int:
     """`fem-dual orbit`: rank 0 solves (an orbit's time mesh is small), the others wait for its
     exit status. Exit 0 ok, 2 bad input, 3 no orbit (the JSON says what was reached)."""
     from fem_dual.config import RunConfig
-    from fem_dual.orbit import Energy, parse_continuation, parse_mode
+    from fem_dual.orbit_input import Energy, parse_continuation, parse_mode
 
     if args.F is not None:
         if args.scene != "force":
@@ -456,12 +456,12 @@ def _orbit(args, params, comm) -> int:
     if period < MIN_T:
         raise InputError(f"period={args.period!r} is too small (at least {MIN_T:g})")
     config = RunConfig.create(args.scene, params, T=args.period, cells=args.cells,
-                              degree=args.degree, x0=args.x0, v0=args.v0)
+                              degree=args.degree, x0=args.x0, v0=args.v0, check_petsc=False)
     if config.degree > 8:
         raise InputError(f"degree={config.degree} is too large for orbits (at most 8)")
     if config.cells > 4096:
         raise InputError(f"cells={config.cells} is too large for orbits (at most 4096)")
-    from fem_dual.orbit import check_resolution
+    from fem_dual.orbit_input import check_resolution
 
     check_resolution(config.scene, config.x0, config.v0, config.T, config.cells)
     continuation = (None if args.continuation is None
@@ -479,6 +479,7 @@ def _orbit(args, params, comm) -> int:
         raise InputError(f"mode energy needs a scene with an energy (linear with K symmetric "
                          f"and no damping, or a force with a potential); {config.scene.name} "
                          "with these parameters has none")
+    config.check_petsc()  # last: it imports PETSc
     comm = _world(comm)
     dirs = {}
     for option, value in (("out", args.out), ("plot", args.plot)):

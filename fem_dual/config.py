@@ -273,7 +273,8 @@ class RunConfig:
                recovery: str = "momentum", assembly: str = "auto",
                rtol: Optional[Number] = None, atol: Optional[Number] = None,
                base: str = "auto", coordinates: str = "auto", reference: str = "auto",
-               t_eval: Optional[Union[str, Sequence[float]]] = None) -> "RunConfig":
+               t_eval: Optional[Union[str, Sequence[float]]] = None,
+               check_petsc: bool = True) -> "RunConfig":
         """Validate every input; raises InputError naming the first bad value.
 
         With `rtol` (and optionally `atol`) the slab lengths are chosen by the error estimate
@@ -346,9 +347,16 @@ class RunConfig:
         config = cls(scene, T_value, cells_, degree_, slabs_, x0_, v0_, out_, petsc_, halvings,
                      superpose, staging, recovery, assembly, rtol_, atol_, base, coordinates,
                      reference, times)
-        from fem_dual.petsc_check import check_user_options  # PETSc options are input too
-        from fem_dual.petsc_check import solver_prefix
-
-        path = ("kronecker" if config.kronecker else "forms") if scene.linear else "snes"
-        check_user_options(solver_prefix(scene.name), petsc_, path)
+        if check_petsc:
+            config.check_petsc()
         return config
+
+    def check_petsc(self) -> None:
+        """The PETSc options (--petsc-option, PETSC_OPTIONS) are input too: InputError naming a
+        bad one. Imports PETSc (create does it last; `check_petsc=False` leaves it to the
+        caller, whose own checks then answer without PETSc)."""
+        from fem_dual.petsc_check import check_user_options, solver_prefix
+
+        scene = self.scene
+        path = ("kronecker" if self.kronecker else "forms") if scene.linear else "snes"
+        check_user_options(solver_prefix(scene.name), self.petsc, path)

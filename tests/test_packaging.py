@@ -77,7 +77,14 @@ print(f"{status}|{','.join(heavy)}")
                                           (["run", "linear", "--param", "dofs=2", "--param",
                                             "M=1,0,0,-1"], 2),
                                           (["run", "ziegler", "--base", "predictor",
-                                            "--assembly", "kronecker"], 2)])
+                                            "--assembly", "kronecker"], 2),
+                                          (["orbit", "ziegler", "--period", "-1"], 2),
+                                          (["orbit", "ziegler", "--x0", "0,0", "--period",
+                                            "13"], 2),
+                                          (["orbit", "ziegler", "--x0", "0.1,0.16", "--param",
+                                            "P=1", "--period", "6", "--mode", "energy=1"], 2),
+                                          (["orbit", "ziegler", "--period", "6", "--continue",
+                                            "Q=0:1:2"], 2)])
 def test_help_version_and_bad_options_load_no_heavy_module(argv, status):
     """They answer before DOLFINx, PETSc, MPI, UFL or scipy are imported (about 0.05 s instead
     of 1.7 s, issue 17), bad values of a run included (1 s before: the configuration imported

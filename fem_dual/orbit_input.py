@@ -1,0 +1,154 @@
+"""The input of `fem-dual orbit` that is checked before anything heavy is imported: the mode,
+the continuation, the resolution of the guess, and the energy of a scene (fem_dual.orbit builds
+on them). Bad input answers here without loading DOLFINx or PETSc.
+"""
+from __future__ import annotations
+
+from typing import List, Optional, Tuple
+
+import numpy as np
+
+from fem_dual.errors import InputError
+
+__all__ = ["MODES", "parse_mode", "parse_continuation", "check_resolution", "Energy",
+           "energy_matrices"]
+
+MODES = ("closest", "period", "energy")
+
+
+def parse_mode(text: str) -> Tuple[str, Optional[float]]:
+    """("closest" | "period" | "energy", E or None) from --mode; InputError naming the value."""
+    from fem_dual.scenes.base import parse_number
+
+    name, sep, value = str(text).partition("=")
+    if name not in MODES or (name == "energy") != bool(sep):
+        raise InputError(f"mode={text!r} is not one of closest, period, energy=E")
+    energy = parse_number("energy", value) if sep else None
+    if energy is not None and not energy > 0:
+        raise InputError(f"energy={value!r} must be positive")
+    return name, energy
+
+
+def energy_matrices(scene) -> Optional[Tuple[np.ndarray, np.ndarray]]:
+    """(M, K) of a scene whose motion keeps E = 1/2 v.M v + 1/2 x.K x (linear, K symmetric,
+    undamped), or None."""
+    if not getattr(scene, "linear", False):
+        return None
+    K, D = scene.stiffness_matrix(), scene.damping_matrix()
+    if np.any(D) or not np.allclose(K, K.T, rtol=0.0, atol=1e-14 * np.abs(K).max()):
+        return None
+    return scene.mass_matrix(), 0.5 * (K + K.T)
+
+
+# Gauss-Legendre points on [0, 1] of the potential's line integral V(x) = -int_0^1 F(s x).x ds:
+# exact for polynomial forces up to degree 2 * POTENTIAL_POINTS - 2 (in the forms), and for the
+# reported energy (numpy) up to 2 * REPORT_POINTS - 2
+POTENTIAL_POINTS = 12
+REPORT_POINTS = 40
+SYMMETRY_TOL = 1e-6  # |DF - DF^T| / (1 + |DF|) above this at a sample point: no potential
+
+
+def _gauss_01(points: int) -> Tuple[np.ndarray, np.ndarray]:
+    s, w = np.polynomial.legendre.leggauss(points)
+    return 0.5 * (s + 1.0), 0.5 * w
+
+
+class Energy:
+    """E = 1/2 v.M v + V(x) of a scene that keeps it: linear (K symmetric, undamped; V =
+    1/2 x.K x) or a force with a potential (its Jacobian symmetric: V by the line integral
+    from the origin). `of` returns None for the others (curl forces, damping)."""
+
+    def __init__(self, scene, matrices=None):
+        self.scene, self.matrices = scene, matrices
+        self.linear = matrices is not None
+
+    @classmethod
+    def of(cls, scene, x0: np.ndarray) -> Optional["Energy"]:
+        matrices = energy_matrices(scene)
+        if matrices is not None:
+            return cls(scene, matrices)
+        if getattr(scene, "linear", True):
+            return None
+        from fem_dual.base_state import force_jacobian
+
+        rng = np.random.default_rng(0)
+        radius = max(1.0, float(np.abs(x0).max()))
+        for x in [np.asarray(x0, float)] + list(radius * rng.uniform(-1, 1, (8, scene.n))):
+            J = force_jacobian(scene.force_numpy, x)
+            if not np.all(np.isfinite(J)) or \
+                    np.abs(J - J.T).max() > SYMMETRY_TOL * (1.0 + np.abs(J).max()):
+                return None
+        return cls(scene)
+
+    def value(self, x: np.ndarray, v: np.ndarray) -> float:
+        """E at one state (numpy)."""
+        M = self.scene.mass_matrix()
+        kinetic = 0.5 * float(v @ M @ v)
+        if self.linear:
+            return kinetic + 0.5 * float(x @ self.matrices[1] @ x)
+        s, w = _gauss_01(REPORT_POINTS)
+        return kinetic - float(sum(wq * self.scene.force_numpy(sq * x) @ x
+                                   for sq, wq in zip(s, w)))
+
+    def ufl(self, x, v, force, M):
+        """E(x, v) in UFL, `force` the scene's UFL force (a function of the position)."""
+        import ufl
+
+        s, w = _gauss_01(POTENTIAL_POINTS)
+        potential = -sum(float(wq) * ufl.dot(force(float(sq) * x), x) for sq, wq in zip(s, w))
+        return 0.5 * ufl.dot(v, ufl.dot(M, v)) + potential
+
+
+MAX_RADIANS_PER_CELL = 8.0  # a guess that turns faster than this per cell cannot be resolved
+
+
+def check_resolution(scene, x0: np.ndarray, v0: np.ndarray, T0: float, cells: int) -> None:
+    """InputError when the guess turns more than MAX_RADIANS_PER_CELL per cell at its start
+    rate (its motion could not be resolved, and the guess run alone would take that long)."""
+    from fem_dual.stepper import motion_rate
+
+    if scene.linear:
+        from fem_dual.scenes.linear import first_order_matrix
+
+        A = first_order_matrix(scene.mass_matrix(), scene.stiffness_matrix(),
+                               scene.damping_matrix())
+        a0 = (A @ np.concatenate([x0, v0]))[scene.n:]
+    else:
+        a0 = np.linalg.solve(scene.mass_matrix(), scene.force_numpy(x0))
+    if not np.any(v0) and not np.any(a0):
+        raise InputError(f"x0={list(map(float, x0))}, v0=0 is an equilibrium: no orbit starts "
+                         "there; give a start on the orbit")
+    turns = motion_rate(x0, v0, a0) * T0 / cells
+    if not turns <= MAX_RADIANS_PER_CELL:
+        raise InputError(f"period={T0:g} spans {turns:.3g} radians per cell of the guess's "
+                         f"motion over {cells} cells (at most {MAX_RADIANS_PER_CELL:g}); give the "
+                         "period of one orbit, or raise --cells")
+
+
+def parse_continuation(text: str, scene) -> Tuple[str, np.ndarray]:
+    """(NAME, values) from NAME=a:b:steps (steps + 1 values from a to b); InputError naming the
+    bad piece. NAME must be a number parameter of the scene."""
+    from fem_dual.scenes.base import parse_number
+
+    name, sep, rng = str(text).partition("=")
+    name = name.strip()
+    parts = rng.split(":")
+    if not sep or len(parts) != 3:
+        raise InputError(f"--continue {text!r} is not NAME=START:STOP:STEPS")
+    if name not in _number_parameters(scene):
+        raise InputError(f"--continue {name!r} is not a number parameter of {scene.name} "
+                         f"(those are: {', '.join(_number_parameters(scene))})")
+    a, b = parse_number("continuation start", parts[0]), parse_number("continuation stop",
+                                                                       parts[1])
+    steps = parse_number("continuation steps", parts[2])
+    if not (steps >= 1 and steps == int(steps) and steps <= 10_000):
+        raise InputError(f"continuation steps={parts[2]!r} must be a whole number in 1..10000")
+    if a == b:
+        raise InputError(f"--continue {text!r}: start and stop are equal")
+    return name, np.linspace(a, b, int(steps) + 1)
+
+
+def _number_parameters(scene) -> List[str]:
+    """The scene's parameters that are one number (a user force's own ones included)."""
+    return [k for k, v in scene.parameters().items()
+            if isinstance(v, (int, float, np.floating)) and not isinstance(v, bool)]
