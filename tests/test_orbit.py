@@ -12,7 +12,8 @@ from scipy.integrate import solve_ivp
 
 from fem_dual.cli import main
 from fem_dual.config import _scene
-from fem_dual.orbit import Orbits, SlabFlow, multiplier_distance, nontrivial
+from fem_dual.floquet import SlabFlow, multiplier_distance, nontrivial
+from fem_dual.orbit import Orbits
 
 FEM_DUAL = [sys.executable, "-m", "fem_dual.cli"]
 CURL = {"F": "-x - 0.5*y**2, -2*y - 0.5*x**2"}  # a curl force: dFy/dx - dFx/dy = y - x
