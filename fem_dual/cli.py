@@ -474,11 +474,16 @@ def _orbit(args, params, comm) -> int:
             if mode == "energy" and Energy.of(member, config.x0) is None:
                 raise InputError(f"mode energy: {config.scene.name} at {continuation[0]}="
                                  f"{value:.6g} has no energy (linear with K symmetric and no "
-                                 "damping, or a force with a potential)")
-    if mode == "energy" and Energy.of(config.scene, config.x0) is None:
+                                 "damping, or a force with a potential V(x) = -int_0^1 F(sx).x "
+                                 "ds that is finite)")
+    has = Energy.of(config.scene, config.x0) if mode == "energy" else None
+    if mode == "energy" and has is None:
         raise InputError(f"mode energy needs a scene with an energy (linear with K symmetric "
-                         f"and no damping, or a force with a potential); {config.scene.name} "
-                         "with these parameters has none")
+                         f"and no damping, or a force with a potential V(x) = -int_0^1 F(sx).x ds "
+                         f"that is finite); {config.scene.name} with these parameters has none")
+    if has is not None and has.linear and not energy > 0:
+        raise InputError(f"energy={energy:g} must be positive for {config.scene.name} (its "
+                         "energy is 1/2 v.M v + 1/2 x.K x)")
     config.check_petsc()  # last: it imports PETSc
     comm = _world(comm)
     dirs = {}

@@ -363,20 +363,23 @@ class Simulation:
         return self._maps[dt]
 
     def tangent(self, z0: np.ndarray, dz: np.ndarray, t0: float, dt: float,
-                values: Optional[VertexValues], central: bool = False) -> Optional[np.ndarray]:
+                values: Optional[VertexValues], central: bool = False,
+                scale: Optional[float] = None, relative: float = 1e-5) -> Optional[np.ndarray]:
         """Psi dz: the first-order change (vertices, 2n) of the slab's vertex values `values`
         (solved from z0) when its start state changes by dz, on rank 0. A linear slab map is
         its own tangent; a nonlinear one is linearised around the converged solution (a
         forward difference in the start state of relative size 1e-6, error O(1e-6); `central`:
-        the mean of those in dz and -dz, of size 1e-5, error O(1e-10)). Collective; call it
-        right after the slab was solved."""
+        the mean of those in dz and -dz, of size `relative`, error O(relative^2)). The size is
+        relative to `scale` (the size of the motion, e.g. an orbit's extent), by default to
+        that of z0. Collective; call it right after the slab was solved."""
         if central and not self.scene.linear:
-            ahead = self._tangent(z0, dz, t0, dt, values, 1e-5)
-            behind = self._tangent(z0, -dz, t0, dt, values, 1e-5)
+            ahead = self._tangent(z0, dz, t0, dt, values, relative, scale)
+            behind = self._tangent(z0, -dz, t0, dt, values, relative, scale)
             return None if ahead is None else 0.5 * (ahead - behind)
-        return self._tangent(z0, dz, t0, dt, values, 1e-6)
+        return self._tangent(z0, dz, t0, dt, values, 1e-6, scale)
 
-    def _tangent(self, z0, dz, t0, dt, values, relative: float) -> Optional[np.ndarray]:
+    def _tangent(self, z0, dz, t0, dt, values, relative: float,
+                 scale: Optional[float] = None) -> Optional[np.ndarray]:
         if not np.any(dz):
             return None if values is None else np.zeros((len(values.s), 2 * self.scene.n))
         if self.scene.linear:
@@ -384,7 +387,7 @@ class Simulation:
                 self.tangent_solves += 1
             moved = self.solve_slab(dz, t0, dt)
             return None if moved is None else np.hstack([moved.x, moved.v])
-        eps = self.solver.tangent(z0, dz, relative)
+        eps = self.solver.tangent(z0, dz, relative, scale)
         moved = self._sample_and_restore(z0)
         if moved is None:
             return None

@@ -17,12 +17,14 @@ from fem_dual.errors import SolveError
 __all__ = ["SlabFlow", "monodromy", "nontrivial", "multiplier_distance", "stop_if_asked",
            "MULTIPLIER_TOL", "MAX_FOLD"]
 
-MAX_FOLD = 12  # an orbit closing after T/k for k up to this is a k-fold cover: not its period
+MAX_FOLD = 12  # an orbit closing after T/k is a k-fold cover, checked for k up to this or the
+# orbit's nodes (cells x degree), whichever is larger: no mesh resolves more turns than nodes
 MULTIPLIER_TOL = 1e-6  # multipliers' estimate or check above this (relative): not vouched for
 
 
-def _rhs_and_jacobian(scene):
-    """(f, J): z' = f(z) for the undamped... scene's motion, and its Jacobian."""
+def _rhs_and_jacobian(scene, length: float = 0.0):
+    """(f, J): z' = f(z) for the undamped scene's motion, and its Jacobian (fourth-order
+    central differences of size 1e-3 times `length`, the size of the motion, or of x)."""
     n = scene.n
     M = scene.mass_matrix()
     if scene.linear:
@@ -37,9 +39,10 @@ def _rhs_and_jacobian(scene):
 
     def jac(z):
         x = z[:n]
-        h = 1e-3 * max(1.0, float(np.abs(x).max()))
         DF = np.empty((n, n))
         for j in range(n):  # fourth-order central differences (exact for cubic forces)
+            h = 1e-3 * (length if length > 0 else max(1.0, abs(x[j])))
+            h = (x[j] + h) - x[j]  # the step as rounded: x + 2h and x - h, x - 2h are exact
             e = np.zeros(n)
             e[j] = h
             DF[:, j] = (8 * (scene.force_numpy(x + e) - scene.force_numpy(x - e))
@@ -52,12 +55,14 @@ def _rhs_and_jacobian(scene):
     return f, jac
 
 
-def monodromy(scene, z0: np.ndarray, T: float) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(z(T), Phi(T), z(T/k) for k = 2 .. MAX_FOLD): DOP853 at rtol = atol = 1e-13 on the motion
-    and its variational equation from z0 over [0, T] (its dense output at T/k)."""
+def monodromy(scene, z0: np.ndarray, T: float, folds: int = MAX_FOLD, length: float = 0.0
+              ) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(z(T), Phi(T), z(T/k) for k = 2 .. folds): DOP853 at rtol = atol = 1e-13 on the motion
+    and its variational equation from z0 over [0, T] (its dense output at T/k); `length`: the
+    size of the motion in x, to which the force's difference steps are relative."""
     from scipy.integrate import solve_ivp
 
-    f, jac = _rhs_and_jacobian(scene)
+    f, jac = _rhs_and_jacobian(scene, length)
     m = len(z0)
 
     def rhs(_t, y):
@@ -70,7 +75,7 @@ def monodromy(scene, z0: np.ndarray, T: float) -> Tuple[np.ndarray, np.ndarray, 
     if not sol.success:
         raise SolveError(f"the check of the orbit by DOP853 failed: {sol.message}")
     y = sol.y[:, -1]
-    parts = np.array([sol.sol(T / k)[:m] for k in range(2, MAX_FOLD + 1)])
+    parts = sol.sol(T / np.arange(2, max(folds, 2) + 1))[:m].T
     return y[:m], y[m:].reshape(m, m), parts
 
 
@@ -92,7 +97,7 @@ class SlabFlow:
     multipliers estimate the error of the first. One compiled simulation for every orbit."""
 
     def __init__(self, degree: int):
-        self.degree, self.sim = degree, None
+        self.degree, self.sim, self.scale = degree, None, None
         self._counted = 0.0  # the simulation's set-up seconds already reported
 
     def new_setup_s(self) -> float:
@@ -102,9 +107,13 @@ class SlabFlow:
         return new
 
     def __call__(self, scene, z0: np.ndarray, T: float, cells: int,
-                 other_z0: Optional[np.ndarray] = None, other_T: Optional[float] = None):
+                 other_z0: Optional[np.ndarray] = None, other_T: Optional[float] = None,
+                 scale: Optional[float] = None):
         """(z(T), Phi, Phi_companion) from z0 over [0, T] (the companion from other_z0 over
-        [0, other_T], the degree p + 1 orbit, when given); raises SolveError."""
+        [0, other_T], the degree p + 1 orbit, when given); `scale`: the size of the motion
+        (the orbit's extent), to which the tangents' difference steps are relative, not to
+        the size of the state (an orbit far from the origin). Raises SolveError."""
+        self.scale = scale
         from fem_dual.config import RunConfig
         from fem_dual.driver import Simulation
 
@@ -138,11 +147,11 @@ class SlabFlow:
         companion = sim.companion
         try:
             values = sim.solve_slab(z, t0, dt)
-            psi = np.column_stack([sim.tangent(z, e, t0, dt, values, central=True)[-1]
-                                   for e in unit])
+            psi = np.column_stack([sim.tangent(z, e, t0, dt, values, central=True,
+                                               scale=self.scale)[-1] for e in unit])
             other = companion.solve_slab(z_c, t0_c, dt_c, start=sim)
-            psi_c = np.column_stack([companion.tangent(z_c, e, t0_c, dt_c, other,
-                                                       central=True)[-1] for e in unit])
+            psi_c = np.column_stack([companion.tangent(z_c, e, t0_c, dt_c, other, central=True,
+                                                       scale=self.scale)[-1] for e in unit])
         except faults.Interrupted:  # a signal is no failure to work around
             raise
         except SolveError as exc:

@@ -237,18 +237,25 @@ class NewtonSlabSolver(CompiledSlab):
         self.residual_norms.append(history[-1] if history else 0.0)
         self.histories.append(history)
 
-    def tangent(self, z0: np.ndarray, dz: np.ndarray, relative: float = 1e-6) -> float:
+    def tangent(self, z0: np.ndarray, dz: np.ndarray, relative: float = 1e-6,
+                scale: Optional[float] = None) -> float:
         """Linearise the converged slab around its start state z0 in the direction dz: leaves
         the problem at start state z0 + eps dz with the dual state w + eps dw, where
         J dw = -dR/dz dz (J: the Jacobian factored in the last Newton step), and returns eps
-        (`relative` times the size of z0 and dz over that of dz). `restore(z0)` goes back.
+        (`relative` times `scale`, by default the size of z0 and dz, over the size of dz; along
+        one component, the step z0 + eps dz - z0 as rounded). `restore(z0)` goes back.
         Collective."""
         p, n = self.problem, self.problem.n
         size = float(np.abs(dz).max(initial=0.0))
-        eps = relative * max(float(np.abs(z0).max(initial=0.0)), size) / size
+        if scale is None or not scale > 0:
+            scale = max(float(np.abs(z0).max(initial=0.0)), size)
+        eps = relative * scale / size
+        z1 = z0 + eps * dz
+        if np.count_nonzero(dz) == 1:  # the step that was taken, not the one asked for
+            j = int(np.flatnonzero(dz)[0])
+            eps = float(z1[j] - z0[j]) / float(dz[j])
         r0 = self._converged_residual()
         r1 = self.b.duplicate()
-        z1 = z0 + eps * dz
         p.set_start(z1[:n], z1[n:])
         self._residual(self.snes, self.x, r1)
         r1.axpy(-1.0, r0)

@@ -53,8 +53,9 @@ from fem_dual import faults
 from fem_dual.compat import (CellPointEvaluator, constant, destroy_petsc, quiet_jit_logging,
                              vector_space)
 from fem_dual.errors import InputError, SolveError
-from fem_dual.floquet import (FLOW_MAX_CELLS, FLOW_START_CELLS, FLOW_TARGET, MULTIPLIER_TOL,
-                              SlabFlow, monodromy, multiplier_distance, nontrivial, stop_if_asked)
+from fem_dual.floquet import (FLOW_MAX_CELLS, FLOW_START_CELLS, FLOW_TARGET, MAX_FOLD,
+                              MULTIPLIER_TOL, SlabFlow, monodromy, multiplier_distance,
+                              nontrivial, stop_if_asked)
 from fem_dual.orbit_input import (MODES, Energy, check_resolution, energy_matrices,  # noqa: F401
                                 parse_continuation, parse_mode)
 from fem_dual.problem import SlabProblem
@@ -69,9 +70,14 @@ NEWTON_TOL = 1e-12  # Newton step: relative change of the orbit's vertex states 
 NEWTON_STAGNATION = 1e-9  # ... or below this, a step no longer 4x smaller than the last
 CLOSURE_TOL = 1e-6  # closure / max|z| above this: the orbit does not close
 MU_TOL = 1e-6  # |mu| T above this: an orbit of the damped system only
-COLLAPSE_TOL = 1e-6  # an orbit that moves by less than this times its size: an equilibrium
+COLLAPSE_TOL = 1e-10  # an orbit that moves by less than this times its size: an equilibrium
+# (its extent at the level of the Newton's resolution of its offset, not of the origin); one
+# that does not close and moves by less than SMALL_TOL times its size is collapsing
+SMALL_TOL = 1e-4
 ENERGY_HALVINGS = 8  # mode energy: a step in energy halved at most this often in a row
 ENERGY_STAGES = 100  # ... and at most this many steps
+AMPLITUDE_STEPS = 60  # mode energy: closest orbits scaled in amplitude, at most this many,
+ANCHOR_TOL = 1e-4  # ... the last from a base state scaled by at most this from an orbit
 ENERGY_TOL = 1e-8  # mode energy: the orbit's energy (at its start) within this of E, relative
 
 
@@ -459,6 +465,15 @@ class Orbits:
             pass
         history, s, x, v = self._newton(guess, T0, "closest")
         reached, period = has.value(x[0], v[0]), float(self.problem.T_c.value)
+        if reached is None:
+            raise SolveError("mode energy: the potential (the line integral of the force from "
+                             "the origin) cannot be integrated at the closest orbit's start")
+        try:
+            return self._scale_to_energy(scene, s, x, v, period, reached, energy, has)
+        except faults.Interrupted:  # a signal is no failure to work around
+            raise
+        except SolveError:
+            pass
         step, stages, halvings = energy - reached, 0, 0
         while True:
             goal = energy if abs(step) >= abs(energy - reached) else reached + step
@@ -481,6 +496,50 @@ class Orbits:
                 return {**history, "energy_stages": stages}, s, x, v
             step *= 1.5
 
+    def _scale_to_energy(self, scene, s, x, v, period: float, reached: float, energy: float,
+                         has: Energy):
+        """The closest orbit from an orbit scaled about its mean (the anchor): while E is far,
+        by sqrt((E - E_centre) / (E_orbit - E_centre)) (E - E_centre ~ amplitude^2 near a
+        centre; at most 2x), each orbit the next anchor; then by the factor that secant steps
+        find, until the orbit's energy is E within ENERGY_TOL / 1000. Near a linear limit (small
+        amplitudes) the energy row is nearly singular (condition ~ 1 / amplitude^2, as for
+        linear scenes), the closest orbit is not. Raises SolveError."""
+        bottom = _centre_energy(has, x, v)
+        anchor = (s, x, v, period)
+        points = [(1.0, reached)]  # (the anchor's scale, the closest orbit's energy)
+        iterations = 0
+        for step in range(AMPLITUDE_STEPS):
+            stop_if_asked("the energy's amplitude steps")
+            c, E = points[-1]
+            if abs(E - energy) <= 1e-3 * ENERGY_TOL * max(abs(energy), _kinetic_scale(scene, v)):
+                if abs(c - 1.0) <= ANCHOR_TOL:
+                    return {"iterations": iterations, "amplitude_steps": step}, s, x, v
+                # its base state was far from it (the discrete orbit's error grows with that
+                # distance): again from this orbit
+                anchor, points, c = (s, x, v, period), [(1.0, E)], 1.0
+            q = (energy - bottom) / (E - bottom) if bottom < min(E, energy) else (
+                0.25 if energy < E else 4.0)  # the centre's energy is only about the bottom's
+            if not 0.5 <= q <= 2.0 and len(points) > 1:  # far: the last orbit as the anchor
+                anchor, points, c = (s, x, v, period), [(1.0, E)], 1.0
+                bottom = _centre_energy(has, x, v)
+            if len(points) > 1:  # secant in the anchor's scale
+                c0, E0 = points[-2]
+                target = c + (energy - E) * (c - c0) / (E - E0) if E != E0 else c
+            else:
+                target = c * float(np.sqrt(q))
+            target = float(np.clip(target, 0.5 * c, 2.0 * c))
+            s_a, x_a, v_a, period_a = anchor
+            x_mid, v_mid = x_a.mean(axis=0), v_a.mean(axis=0)
+            start = OrbitGuess(scene, period_a * s_a, x_mid + target * (x_a - x_mid),
+                               v_mid + target * (v_a - v_mid))
+            history, s, x, v = self._newton(start, period_a, "closest")
+            iterations += history["iterations"]
+            period, E = float(self.problem.T_c.value), has.value(x[0], v[0])
+            if E is None:
+                raise SolveError("no energy at the orbit's start")
+            points.append((target, E))
+        raise SolveError(f"the amplitude steps did not reach E = {energy:.10g}")
+
     def solve(self, scene, x0: np.ndarray, v0: np.ndarray, T0: float, mode: str = "closest",
               energy: Optional[float] = None, check: bool = True,
               guess=None, companion: Optional["Orbits"] = None) -> OrbitResult:
@@ -494,6 +553,9 @@ class Orbits:
             raise InputError(f"mode energy needs a scene with an energy (linear with K "
                              f"symmetric and no damping, or a force with a potential); "
                              f"{scene.name} has none")
+        if mode == "energy" and has.linear and not energy > 0:
+            raise InputError(f"energy={energy:g} must be positive for {scene.name} (its energy "
+                             "1/2 v.M v + 1/2 x.K x)")
         if mode == "energy" and not has.linear and "E" not in p.forms:
             raise InputError("mode energy: these orbits were compiled without the energy row")
         # a linear family has one period: its orbits of energy E are the closest one scaled
@@ -522,15 +584,23 @@ class Orbits:
         tic = time.perf_counter()
         other = None  # the same orbit at degree p + 1, from the same guess
         if companion is not None and check:
-            if history.get("energy_stages"):  # from the orbit found, not again in stages
+            if history.get("energy_stages") or "amplitude_steps" in history:  # from the orbit
+                # found, not again in stages
                 other = companion.solve(scene, x[0], v[0], T, mode, energy, check=False,
                                         guess=OrbitGuess(scene, T * s, x, v))
             else:
                 other = companion.solve(scene, x0, v0, T0, mode, energy, check=False,
                                         guess=guess)
         estimate_s = time.perf_counter() - tic
+        scale = float(np.abs(np.hstack([x, v])).max())
+        # closures relative to the orbit's extent (its largest range in one component), not to
+        # its offset: an orbit around x = 1 of amplitude 1e-7 is no orbit of size 1; so are the
+        # difference steps of the tangents
+        extent = float(np.ptp(np.hstack([x, v]), axis=0).max())
         tic = time.perf_counter()
-        zT, Phi_check, parts = (monodromy(scene, z0, T) if check
+        zT, Phi_check, parts = (monodromy(scene, z0, T, max(MAX_FOLD, p.mesh.cells * p.degree),
+                                          float(np.ptp(x, axis=0).max()))
+                                if check
                                 else (z0, np.eye(len(z0)), np.zeros((0, len(z0)))))
         check_s = time.perf_counter() - tic
         tic = time.perf_counter()
@@ -541,7 +611,7 @@ class Orbits:
         other_z0, other_T = ((np.concatenate([other.x[0], other.v[0]]), other.period)
                              if other is not None else (z0, T))
         while check:  # finer slabs until the multipliers' estimate meets FLOW_TARGET
-            _, Phi, Phi_c = self.flow(scene, z0, T, flow_cells, other_z0, other_T)
+            _, Phi, Phi_c = self.flow(scene, z0, T, flow_cells, other_z0, other_T, extent)
             error = multiplier_distance(*(nontrivial(np.linalg.eigvals(m)) for m in (Phi, Phi_c)))
             if error <= FLOW_TARGET or 2 * flow_cells > FLOW_MAX_CELLS:
                 break
@@ -549,16 +619,15 @@ class Orbits:
         flow_compile_s = self.flow.new_setup_s()
         flow_s = time.perf_counter() - tic - flow_compile_s
         closure = float(np.abs(zT - z0).max())
-        scale = float(np.abs(np.hstack([x, v])).max())
-        # closures relative to the orbit's extent (its largest range in one component), not to
-        # its offset: an orbit around x = 1 of amplitude 1e-7 is no orbit of size 1
-        extent = float(np.ptp(np.hstack([x, v]), axis=0).max())
         folds = [k for k, z in enumerate(parts, start=2)
                  if np.abs(z - z0).max() <= CLOSURE_TOL * extent]
         lam, lam_c, lam_check = (np.linalg.eigvals(m) for m in (Phi, Phi_c, Phi_check))
         lam = lam[np.lexsort((lam.imag, -np.abs(lam)))]
         multipliers_error = multiplier_distance(nontrivial(lam), nontrivial(lam_c))
         multipliers_check = multiplier_distance(nontrivial(lam), nontrivial(lam_check))
+        # eigenvalues carry round-off of about eps |Phi| each: a multiplier far below the
+        # largest (its inverse, in a reversible system) is known no better than that
+        roundoff = float(len(Phi) * np.finfo(float).eps * np.linalg.norm(Phi, 2)) if check else 0.0
         result = OrbitResult(
             scene=scene.name, parameters=scene.parameters(), mode=mode, period=T, mu=mu,
             t=list(T * s), x=x.tolist(), v=v.tolist(),
@@ -577,7 +646,8 @@ class Orbits:
             result.estimate.update(_differences(result, other), degree=other.degree)
             result.timings["estimate_s"] = estimate_s
         if check:
-            result.estimate["multipliers"] = multipliers_error
+            result.estimate["multipliers"] = max(multipliers_error, roundoff)
+            result.estimate["multipliers_roundoff"] = roundoff
             result.timings["monodromy_cells"] = flow_cells
             result.check = {"multipliers_dop853": [[float(z.real), float(z.imag)]
                                                    for z in lam_check],
@@ -593,7 +663,9 @@ class Orbits:
                               "guess is near no orbit of the undamped system (past flutter, or "
                               "a motion that is not periodic), or the mesh is too coarse for it; "
                               "give a better guess, or raise --cells or --degree")
-        elif check and mode == "energy" and not abs(orbit_energy - energy) <= ENERGY_TOL * energy:
+        elif check and mode == "energy" and not (
+                orbit_energy is not None and abs(orbit_energy - energy)
+                <= ENERGY_TOL * max(abs(energy), _kinetic_scale(scene, v))):
             result.status = "failed"
             result.message = (f"the orbit's energy is {orbit_energy:.12g}, not {energy:.12g}; "
                               "raise --cells or give a guess nearer that energy")
@@ -607,7 +679,20 @@ class Orbits:
             result.status = "failed"
             result.message = (f"the orbit does not close: |z(T) - z(0)| = {closure:.3g} "
                               f"({result.closure_relative:.3g} relative) by DOP853 from its start; "
-                              "raise --cells or --degree, or give a better guess")
+                              + (f"it moves by only {extent:.3g} around {scale:.3g}, collapsing "
+                                 "onto an equilibrium: give a guess near an orbit (--period near "
+                                 "one, a larger amplitude in --x0, --v0)"
+                                 if extent <= SMALL_TOL * scale else
+                                 "raise --cells or --degree, or give a better guess"))
+        elif check and not max(multipliers_error, multipliers_check, roundoff) <= MULTIPLIER_TOL \
+                and roundoff > 0.1 * MULTIPLIER_TOL:
+            result.status = "failed"
+            result.message = (f"the Floquet multipliers span more than double precision resolves: "
+                              f"|monodromy| = {np.linalg.norm(Phi, 2):.3g}, so each multiplier "
+                              f"is known only to about {roundoff:.3g} (degree p and p + 1 differ "
+                              f"by {multipliers_error:.3g}, fem-dual and DOP853 by "
+                              f"{multipliers_check:.3g}); no resolution helps: the orbit is this "
+                              "unstable (a shorter orbit of the family is less so)")
         elif check and not max(multipliers_error, multipliers_check) <= MULTIPLIER_TOL:
             result.status = "failed"
             result.message = (f"the Floquet multipliers are uncertain: degree p and p + 1 differ "
@@ -615,6 +700,22 @@ class Orbits:
                               f"{multipliers_check:.3g} (relative to 1 + |multiplier|); raise "
                               "--cells or --degree")
         return result
+
+
+def _centre_energy(has: Energy, x: np.ndarray, v: np.ndarray) -> float:
+    """About the energy at an orbit's centre (its mean position at rest); raises SolveError
+    where the potential cannot be integrated."""
+    bottom = has.value(x.mean(axis=0), np.zeros(v.shape[1]))
+    if bottom is None:
+        raise SolveError("no energy at the orbit's centre")
+    return bottom
+
+
+def _kinetic_scale(scene, v: np.ndarray) -> float:
+    """The largest kinetic energy along an orbit: the scale of its energy (which can be 0 or
+    negative with a potential from V(0) = 0)."""
+    M = scene.mass_matrix()
+    return float(max(0.5 * w @ M @ w for w in np.asarray(v)))
 
 
 def _orbit_advice(message: str) -> str:

@@ -23,10 +23,9 @@ def parse_mode(text: str) -> Tuple[str, Optional[float]]:
     name, sep, value = str(text).partition("=")
     if name not in MODES or (name == "energy") != bool(sep):
         raise InputError(f"mode={text!r} is not one of closest, period, energy=E")
-    energy = parse_number("energy", value) if sep else None
-    if energy is not None and not energy > 0:
-        raise InputError(f"energy={value!r} must be positive")
-    return name, energy
+    # any finite E: a potential from V(0) = 0 can be negative (a linear scene's E > 0 is
+    # checked with the scene)
+    return name, parse_number("energy", value) if sep else None
 
 
 def energy_matrices(scene) -> Optional[Tuple[np.ndarray, np.ndarray]]:
@@ -40,11 +39,13 @@ def energy_matrices(scene) -> Optional[Tuple[np.ndarray, np.ndarray]]:
     return scene.mass_matrix(), 0.5 * (K + K.T)
 
 
-# Gauss-Legendre points on [0, 1] of the potential's line integral V(x) = -int_0^1 F(s x).x ds:
-# exact for polynomial forces up to degree 2 * POTENTIAL_POINTS - 2 (in the forms), and for the
-# reported energy (numpy) up to 2 * REPORT_POINTS - 2
-POTENTIAL_POINTS = 12
-REPORT_POINTS = 40
+# The potential of a force with a symmetric Jacobian is the line integral from the origin,
+# V(x) = -int_0^1 F(s x).x ds. In the forms it is a Gauss-Legendre rule on [0, 1]: the fewest of
+# POTENTIAL_RULES points that agrees with adaptive quadrature (scipy's quad) to POTENTIAL_TOL at
+# the sample points (fast forces need more; a force singular at the origin has no potential
+# from there: no energy). The reported energy is quad's.
+POTENTIAL_RULES = (12, 24, 48, 96)
+POTENTIAL_TOL = 1e-11  # relative to |V| + |F(x)| |x|, the integrand's scale
 SYMMETRY_TOL = 1e-6  # |DF - DF^T| / (1 + |DF|) above this at a sample point: no potential
 
 
@@ -53,13 +54,45 @@ def _gauss_01(points: int) -> Tuple[np.ndarray, np.ndarray]:
     return 0.5 * (s + 1.0), 0.5 * w
 
 
+def _potential(force, x: np.ndarray) -> Optional[Tuple[float, float]]:
+    """(V(x), the integrand's scale) by adaptive quadrature, or None when the line integral
+    from the origin is not finite or quad cannot vouch for it (a divergent or badly behaved
+    integrand; round-off that stops it short of its tolerance is fine when its error is)."""
+    import warnings
+
+    from scipy.integrate import quad
+
+    x = np.asarray(x, float)
+    with warnings.catch_warnings(record=True) as caught, np.errstate(all="ignore"):
+        warnings.simplefilter("always")
+        try:
+            value, error = quad(lambda s: -float(force(s * x) @ x), 0.0, 1.0, limit=200,
+                                epsabs=0.0, epsrel=1e-13)
+        except (ArithmeticError, ValueError):
+            return None
+        scale = abs(value) + float(np.abs(force(x)).max() * np.abs(x).max())
+    if any("roundoff error is detected, which prevents" not in str(w.message) for w in caught):
+        return None
+    if not (np.isfinite(value) and np.isfinite(scale)
+            and error <= POTENTIAL_TOL * max(scale, 1e-300)):
+        return None
+    return value, scale
+
+
+def _gauss_potential(force, x: np.ndarray, points: int) -> float:
+    s, w = _gauss_01(points)
+    with np.errstate(all="ignore"):
+        return -float(sum(wq * force(sq * x) @ x for sq, wq in zip(s, w)))
+
+
 class Energy:
     """E = 1/2 v.M v + V(x) of a scene that keeps it: linear (K symmetric, undamped; V =
     1/2 x.K x) or a force with a potential (its Jacobian symmetric: V by the line integral
-    from the origin). `of` returns None for the others (curl forces, damping)."""
+    from the origin, `points` Gauss-Legendre points in the forms). `of` returns None for the
+    others (curl forces, damping, a potential that is singular at the origin)."""
 
-    def __init__(self, scene, matrices=None):
-        self.scene, self.matrices = scene, matrices
+    def __init__(self, scene, matrices=None, points: int = POTENTIAL_RULES[0]):
+        self.scene, self.matrices, self.points = scene, matrices, points
         self.linear = matrices is not None
 
     @classmethod
@@ -73,28 +106,38 @@ class Energy:
 
         rng = np.random.default_rng(0)
         radius = max(1.0, float(np.abs(x0).max()))
-        for x in [np.asarray(x0, float)] + list(radius * rng.uniform(-1, 1, (8, scene.n))):
-            J = force_jacobian(scene.force_numpy, x)
+        samples = [np.asarray(x0, float)] + list(radius * rng.uniform(-1, 1, (8, scene.n)))
+        references = []
+        for x in samples:
+            with np.errstate(all="ignore"):
+                J = force_jacobian(scene.force_numpy, x)
             if not np.all(np.isfinite(J)) or \
                     np.abs(J - J.T).max() > SYMMETRY_TOL * (1.0 + np.abs(J).max()):
                 return None
-        return cls(scene)
+            reference = _potential(scene.force_numpy, x)
+            if reference is None:
+                return None
+            references.append(reference)
+        for points in POTENTIAL_RULES:
+            if all(abs(_gauss_potential(scene.force_numpy, x, points) - value)
+                   <= POTENTIAL_TOL * scale for x, (value, scale) in zip(samples, references)):
+                return cls(scene, points=points)
+        return None
 
-    def value(self, x: np.ndarray, v: np.ndarray) -> float:
-        """E at one state (numpy)."""
+    def value(self, x: np.ndarray, v: np.ndarray) -> Optional[float]:
+        """E at one state (numpy; None where the potential cannot be integrated)."""
         M = self.scene.mass_matrix()
         kinetic = 0.5 * float(v @ M @ v)
         if self.linear:
             return kinetic + 0.5 * float(x @ self.matrices[1] @ x)
-        s, w = _gauss_01(REPORT_POINTS)
-        return kinetic - float(sum(wq * self.scene.force_numpy(sq * x) @ x
-                                   for sq, wq in zip(s, w)))
+        potential = _potential(self.scene.force_numpy, x)
+        return None if potential is None else kinetic + potential[0]
 
     def ufl(self, x, v, force, M):
         """E(x, v) in UFL, `force` the scene's UFL force (a function of the position)."""
         import ufl
 
-        s, w = _gauss_01(POTENTIAL_POINTS)
+        s, w = _gauss_01(self.points)
         potential = -sum(float(wq) * ufl.dot(force(float(sq) * x), x) for sq, wq in zip(s, w))
         return 0.5 * ufl.dot(v, ufl.dot(M, v)) + potential
 
