@@ -42,7 +42,7 @@ def _rhs_and_jacobian(scene, length: float = 0.0):
         DF = np.empty((n, n))
         for j in range(n):  # fourth-order central differences (exact for cubic forces)
             h = 1e-3 * (length if length > 0 else max(1.0, abs(x[j])))
-            h = (x[j] + h) - x[j]  # the step as rounded: x + 2h and x - h, x - 2h are exact
+            h = (x[j] + h) - x[j]  # the step as rounded, so that x + h is exact
             e = np.zeros(n)
             e[j] = h
             DF[:, j] = (8 * (scene.force_numpy(x + e) - scene.force_numpy(x - e))
@@ -97,7 +97,7 @@ class SlabFlow:
     multipliers estimate the error of the first. One compiled simulation for every orbit."""
 
     def __init__(self, degree: int):
-        self.degree, self.sim, self.scale = degree, None, None
+        self.degree, self.sim = degree, None
         self._counted = 0.0  # the simulation's set-up seconds already reported
 
     def new_setup_s(self) -> float:
@@ -113,7 +113,6 @@ class SlabFlow:
         [0, other_T], the degree p + 1 orbit, when given); `scale`: the size of the motion
         (the orbit's extent), to which the tangents' difference steps are relative, not to
         the size of the state (an orbit far from the origin). Raises SolveError."""
-        self.scale = scale
         from fem_dual.config import RunConfig
         from fem_dual.driver import Simulation
 
@@ -132,35 +131,38 @@ class SlabFlow:
         Phi = Phi_c = np.eye(2 * n)
         for k in range(slabs):
             stop_if_asked("the monodromy")
-            z, z_c, psi, psi_c = self._slab(z, z_c, k * dt, k * dt_c, dt, dt_c, FLOW_HALVINGS)
+            z, z_c, psi, psi_c = self._slab(z, z_c, k * dt, k * dt_c, dt, dt_c, FLOW_HALVINGS,
+                                               scale)
             Phi, Phi_c = psi @ Phi, psi_c @ Phi_c
         if not (np.isfinite(Phi).all() and np.isfinite(Phi_c).all()):
             raise SolveError("fem-dual's flow along the orbit blew up")
         return z, Phi, Phi_c
 
-    def _slab(self, z, z_c, t0: float, t0_c: float, dt: float, dt_c: float, halvings: int):
+    def _slab(self, z, z_c, t0: float, t0_c: float, dt: float, dt_c: float, halvings: int,
+              scale: Optional[float]):
         """(end state, companion's, slab map Jacobian, companion's) of the slab [t0, t0 + dt]
         (the companion's: [t0_c, t0_c + dt_c]), solved as two halves when Newton fails (slabs
         from a constant base state cannot be as long as the orbit's cells, whose base state is
-        the guess)."""
+        the guess); `scale`: the size of the motion, to which the tangents' steps are relative."""
         sim, unit = self.sim, np.eye(len(z))
         companion = sim.companion
         try:
             values = sim.solve_slab(z, t0, dt)
             psi = np.column_stack([sim.tangent(z, e, t0, dt, values, central=True,
-                                               scale=self.scale)[-1] for e in unit])
+                                               scale=scale)[-1] for e in unit])
             other = companion.solve_slab(z_c, t0_c, dt_c, start=sim)
             psi_c = np.column_stack([companion.tangent(z_c, e, t0_c, dt_c, other, central=True,
-                                                       scale=self.scale)[-1] for e in unit])
+                                                       scale=scale)[-1] for e in unit])
         except faults.Interrupted:  # a signal is no failure to work around
             raise
         except SolveError as exc:
             if halvings == 0:
                 raise SolveError(f"fem-dual's flow along the orbit failed at t = {t0:.6g}: "
                                  f"{exc}") from None
-            z, z_c, psi, psi_c = self._slab(z, z_c, t0, t0_c, dt / 2, dt_c / 2, halvings - 1)
+            z, z_c, psi, psi_c = self._slab(z, z_c, t0, t0_c, dt / 2, dt_c / 2, halvings - 1,
+                                            scale)
             z, z_c, second, second_c = self._slab(z, z_c, t0 + dt / 2, t0_c + dt_c / 2,
-                                                  dt / 2, dt_c / 2, halvings - 1)
+                                                  dt / 2, dt_c / 2, halvings - 1, scale)
             return z, z_c, second @ psi, second_c @ psi_c
         return (np.concatenate([values.x[-1], values.v[-1]]),
                 np.concatenate([other.x[-1], other.v[-1]]), psi, psi_c)

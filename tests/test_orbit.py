@@ -307,8 +307,9 @@ def test_multipliers_it_cannot_vouch_for_are_a_failure(monkeypatch):
 
 def test_an_equilibrium_or_a_multiple_period_is_no_orbit():
     """The linear oscillator around x = 1 (period 2 pi) held at period 6.2832 collapses onto its
-    equilibrium (it moves by 1e-7 and does not close): failed, saying so. A guess over twice (three times) the period finds
-    the orbit run twice (three times): failed, naming the period. (Found by a hostile test.)"""
+    equilibrium (it moves by 1e-7 and does not close): failed, saying so. A guess over twice
+    (three times) the period finds the orbit run twice (three times): failed, naming the
+    period. (Found by a hostile test.)"""
     shifted = _scene("force", {"F": "-(x - 1)"})
     r = _one_orbit(shifted, [1.001], 6.2832, cells=64, mode="period")
     assert r.status == "failed" and "equilibrium" in r.message
