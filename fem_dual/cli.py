@@ -127,7 +127,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "motion from x0, v0 over T0")
     o.add_argument("--mode", default="closest", help="closest (default: period and unfolding "
                    "unknown, the family member closest to the guess), period (T0 kept), "
-                   "energy=E (mean energy E; linear scenes with symmetric K, undamped)")
+                   "energy=E (energy E: linear scenes with symmetric K and no damping, "
+                   "forces with a potential, whose V(0) = 0)")
     o.add_argument("--cells", default="64", help="time cells over one period (default 64)")
     o.add_argument("--degree", default="4", help="degree of the dual fields (default 4)")
     o.add_argument("--continue", dest="continuation", metavar="NAME=A:B:STEPS",
@@ -471,16 +472,15 @@ def _orbit(args, params, comm) -> int:
 
         for value in continuation[1]:
             member = _scene(config.scene.name, {**params, continuation[0]: value})
-            if mode == "energy" and Energy.of(member, config.x0) is None:
+            member_has, why = Energy.find(member, config.x0) if mode == "energy" else (1, "")
+            if member_has is None:
                 raise InputError(f"mode energy: {config.scene.name} at {continuation[0]}="
-                                 f"{value:.6g} has no energy (linear with K symmetric and no "
-                                 "damping, or a force with a potential V(x) = -int_0^1 F(sx).x "
-                                 "ds that is finite)")
-    has = Energy.of(config.scene, config.x0) if mode == "energy" else None
+                                 f"{value:.6g} has no energy: {why}")
+    has, why = Energy.find(config.scene, config.x0) if mode == "energy" else (None, "")
     if mode == "energy" and has is None:
         raise InputError(f"mode energy needs a scene with an energy (linear with K symmetric "
-                         f"and no damping, or a force with a potential V(x) = -int_0^1 F(sx).x ds "
-                         f"that is finite); {config.scene.name} with these parameters has none")
+                         f"and no damping, or a force with a potential); {config.scene.name} "
+                         f"with these parameters has none: {why}")
     if has is not None and has.linear and not energy > 0:
         raise InputError(f"energy={energy:g} must be positive for {config.scene.name} (its "
                          "energy is 1/2 v.M v + 1/2 x.K x)")

@@ -54,8 +54,8 @@ from fem_dual.compat import (CellPointEvaluator, constant, destroy_petsc, quiet_
                              vector_space)
 from fem_dual.errors import InputError, SolveError
 from fem_dual.floquet import (FLOW_MAX_CELLS, FLOW_START_CELLS, FLOW_TARGET, MAX_FOLD,
-                              MULTIPLIER_TOL, SlabFlow, monodromy, multiplier_distance,
-                              nontrivial, stop_if_asked)
+                              MULTIPLIER_TOL, SlabFlow, floquet_multipliers, monodromy,
+                              multiplier_distance, stop_if_asked, vector_field)
 from fem_dual.orbit_input import (MODES, Energy, check_resolution, energy_matrices,  # noqa: F401
                                 parse_continuation, parse_mode)
 from fem_dual.problem import SlabProblem
@@ -65,6 +65,7 @@ from meshes import slab_mesh
 __all__ = ["OrbitProblem", "OrbitResult", "solve_orbit", "MODES", "parse_mode"]
 
 NEWTON_MAX_IT = 30
+BASE_RESTARTS = 4  # a failed Newton starts again on its last iterate's image, at most this often
 STEP_CUTS = 10  # a Newton step whose end has no DtP image is halved at most this often
 NEWTON_TOL = 1e-12  # Newton step: relative change of the orbit's vertex states and period
 NEWTON_STAGNATION = 1e-9  # ... or below this, a step no longer 4x smaller than the last
@@ -74,10 +75,14 @@ COLLAPSE_TOL = 1e-10  # an orbit that moves by less than this times its size: an
 # (its extent at the level of the Newton's resolution of its offset, not of the origin); one
 # that does not close and moves by less than SMALL_TOL times its size is collapsing
 SMALL_TOL = 1e-4
+OFFSET_RATIO = 100.0  # an orbit this many times its extent from the origin: its multipliers'
+# uncertainty is round-off in the tangents (measured: 5e-6 at 2000x, 1e-3 at 2e5x), not the mesh
 ENERGY_HALVINGS = 8  # mode energy: a step in energy halved at most this often in a row
 ENERGY_STAGES = 100  # ... and at most this many steps
 AMPLITUDE_STEPS = 60  # mode energy: closest orbits scaled in amplitude, at most this many,
+AMPLITUDE_HALVINGS = 6  # ... a scale step halved at most this often in a row where Newton fails
 ANCHOR_TOL = 1e-4  # ... the last from a base state scaled by at most this from an orbit
+GUESS_RTOLS = (1e-9, 1e-6)  # the guess's run: this tolerance, or the next where it fails
 ENERGY_TOL = 1e-8  # mode energy: the orbit's energy (at its start) within this of E, relative
 
 
@@ -207,7 +212,8 @@ class OrbitResult:
     guess: Dict[str, Any]
     status: str = "ok"
     message: str = ""
-    energy: Optional[float] = None
+    energy: Optional[float] = None  # at the orbit's start (V(0) = 0)
+    energy_target: Optional[float] = None  # mode energy: the E asked for
     estimate: Dict[str, Any] = field(default_factory=dict)
     # the independent check by DOP853 (the multipliers of its monodromy, and their largest
     # distance to fem-dual's, relative to 1 + |multiplier|)
@@ -388,8 +394,10 @@ class OrbitGuess:
 
 
 class GuessMotion:
-    """The guess of an orbit: the motion from (x0, v0) over T0, by fem-dual (--rtol 1e-9, p = 4,
-    4 cells per slab), on one compiled simulation reused for every guess of a family."""
+    """The guess of an orbit: the motion from (x0, v0) over T0, by fem-dual (p = 4, 4 cells per
+    slab, --rtol GUESS_RTOLS[0], or the next where a run cannot vouch for that: a guess need not
+    be accurate, a motion near a separatrix over a long T0 is not to 1e-9), on one compiled
+    simulation reused for every guess of a family."""
 
     def __init__(self):
         self.sim = None
@@ -399,18 +407,27 @@ class GuessMotion:
         from fem_dual.config import RunConfig
         from fem_dual.driver import Simulation
 
-        config = RunConfig.create(scene, T=T0, x0=x0, v0=v0, cells=4, degree=4, rtol=1e-9,
-                                  reference="none")
-        if self.sim is None:
-            self.sim = Simulation.for_config(config, MPI.COMM_SELF)
-        result = self.sim.run(config)
-        if result.status == "interrupted":
-            stop_if_asked("the guess")
-        if result.status != "ok":
-            reason = result.message.split("; ")[0]  # without a run's advice (--rtol, slabs)
-            raise SolveError(f"the guess (the motion from x0, v0 over {T0:g}) could not be "
-                             f"computed: {reason}; give another guess (--x0, --v0, --period)")
-        return result
+        for rtol in GUESS_RTOLS:
+            config = RunConfig.create(scene, T=T0, x0=x0, v0=v0, cells=4, degree=4, rtol=rtol,
+                                      reference="none")
+            if self.sim is None:
+                self.sim = Simulation.for_config(config, MPI.COMM_SELF)
+            try:
+                result = self.sim.run(config)
+            except faults.Interrupted:
+                raise
+            except SolveError as exc:
+                result = getattr(exc, "partial", None)
+                message = str(exc)
+            else:
+                message = result.message
+            if result is not None and result.status == "interrupted":
+                stop_if_asked("the guess")
+            if result is not None and result.status == "ok":
+                return result
+        reason = message.split("; ")[0]  # without a run's advice (--rtol, slabs)
+        raise SolveError(f"the guess (the motion from x0, v0 over {T0:g}) could not be "
+                         f"computed: {reason}; give another guess (--x0, --v0, --period)")
 
     def close(self) -> None:
         if self.sim is not None:
@@ -436,29 +453,46 @@ class Orbits:
         self.guess.close()
         self.flow.close()
 
-    def _newton(self, guess, T0: float, mode: str, energy: float = 0.0):
+    def _newton(self, guess, T0: float, mode: str, energy: float = 0.0,
+                restarts: int = BASE_RESTARTS):
         """(history, s, x, v): the orbit's Newton from zero dual fields on the base state
-        `guess` (a run over T0). Raises SolveError with advice."""
+        `guess` (a run over T0). When Newton fails, it starts again from zero dual fields on
+        the DtP image of its last iterate as the base state (at most `restarts` times): a
+        base state far from the orbit (a guess over a period 7 % short, a pendulum near its
+        separatrix) leaves the DtP map singular before Newton gets there, while the image is
+        nearer. Raises SolveError with advice."""
         p = self.problem
-        p.set_base(np.hstack(guess.at(T0 * p.base_nodes)))
-        p.w.x.array[:] = 0.0
-        p.T_c.value, p.mu_c.value = T0, 0.0
-        p.start_dtp()
-        self.solver.target_energy = energy
-        try:
-            history = self.solver.solve(mode)
-            return (history, *self.solver.orbit_vertices())
-        except faults.Interrupted:  # a signal is no failure to work around
-            raise
-        except SolveError as exc:
-            raise SolveError(_orbit_advice(str(exc))) from None
+        for restart in range(restarts + 1):
+            p.set_base(np.hstack(guess.at(T0 * p.base_nodes)))
+            p.w.x.array[:] = 0.0
+            p.T_c.value, p.mu_c.value = T0, 0.0
+            p.start_dtp()
+            self.solver.target_energy = energy
+            try:
+                history = self.solver.solve(mode)
+                if restart:
+                    history["base_restarts"] = restart
+                return (history, *self.solver.orbit_vertices())
+            except faults.Interrupted:  # a signal is no failure to work around
+                raise
+            except SolveError as exc:
+                failure = exc
+            try:  # the last iterate, whose image is the next base state
+                s, x, v = self.solver.orbit_vertices()
+            except SolveError:
+                break
+            T0 = float(p.T_c.value)
+            if not (np.isfinite(x).all() and np.isfinite(v).all() and T0 > 0):
+                break
+            guess = OrbitGuess(self.scene, T0 * s, x, v)
+        raise SolveError(_orbit_advice(str(failure))) from None
 
     def _reach_energy(self, scene, guess, T0: float, energy: float, has: Energy):
         """Newton in mode energy from the guess; when that fails, the closest orbit first, then
         steps in energy, each from the orbit before (its motion as the base state), halved when
         Newton fails and doubled after a success. Raises SolveError naming the energy reached."""
         try:
-            return self._newton(guess, T0, "energy", energy)
+            return self._newton(guess, T0, "energy", energy, restarts=0)
         except faults.Interrupted:  # a signal is no failure to work around
             raise
         except SolveError:
@@ -468,18 +502,19 @@ class Orbits:
         if reached is None:
             raise SolveError("mode energy: the potential (the line integral of the force from "
                              "the origin) cannot be integrated at the closest orbit's start")
+        _below_centre(scene, has, x, energy, reached)
         try:
             return self._scale_to_energy(scene, s, x, v, period, reached, energy, has)
         except faults.Interrupted:  # a signal is no failure to work around
             raise
-        except SolveError:
-            pass
+        except SolveError as exc:  # steps in energy from the orbit it reached
+            s, x, v, period, reached = getattr(exc, "reached", (s, x, v, period, reached))
         step, stages, halvings = energy - reached, 0, 0
         while True:
             goal = energy if abs(step) >= abs(energy - reached) else reached + step
             start = OrbitGuess(scene, period * s, x, v)
             try:
-                history, s, x, v = self._newton(start, period, "energy", goal)
+                history, s, x, v = self._newton(start, period, "energy", goal, restarts=0)
             except faults.Interrupted:  # a signal is no failure to work around
                 raise
             except SolveError as exc:
@@ -501,19 +536,23 @@ class Orbits:
         """The closest orbit from an orbit scaled about its mean (the anchor): while E is far,
         by sqrt((E - E_centre) / (E_orbit - E_centre)) (E - E_centre ~ amplitude^2 near a
         centre; at most 2x), each orbit the next anchor; then by the factor that secant steps
-        find, until the orbit's energy is E within ENERGY_TOL / 1000. Near a linear limit (small
-        amplitudes) the energy row is nearly singular (condition ~ 1 / amplitude^2, as for
-        linear scenes), the closest orbit is not. Raises SolveError."""
+        find, until the orbit's energy is E within ENERGY_TOL / 1000. A scaled orbit is only a
+        guess of the next one (an orbit nearing a separatrix changes its shape): where Newton
+        fails, the last orbit becomes the anchor and the step is halved (at most
+        AMPLITUDE_HALVINGS times in a row). Near a linear limit (small amplitudes) the energy
+        row is nearly singular (condition ~ 1 / amplitude^2, as for linear scenes), the
+        closest orbit is not. Raises SolveError, whose `reached` is the last orbit (s, x, v,
+        period, energy)."""
         bottom = _centre_energy(has, x, v)
         anchor = (s, x, v, period)
         points = [(1.0, reached)]  # (the anchor's scale, the closest orbit's energy)
-        iterations = 0
-        for step in range(AMPLITUDE_STEPS):
+        iterations = steps = halvings = 0
+        while steps < AMPLITUDE_STEPS:
             stop_if_asked("the energy's amplitude steps")
             c, E = points[-1]
             if abs(E - energy) <= 1e-3 * ENERGY_TOL * max(abs(energy), _kinetic_scale(scene, v)):
                 if abs(c - 1.0) <= ANCHOR_TOL:
-                    return {"iterations": iterations, "amplitude_steps": step}, s, x, v
+                    return {"iterations": iterations, "amplitude_steps": steps}, s, x, v
                 # its base state was far from it (the discrete orbit's error grows with that
                 # distance): again from this orbit
                 anchor, points, c = (s, x, v, period), [(1.0, E)], 1.0
@@ -528,17 +567,32 @@ class Orbits:
             else:
                 target = c * float(np.sqrt(q))
             target = float(np.clip(target, 0.5 * c, 2.0 * c))
+            target = c + (target - c) * 0.5 ** halvings
             s_a, x_a, v_a, period_a = anchor
             x_mid, v_mid = x_a.mean(axis=0), v_a.mean(axis=0)
             start = OrbitGuess(scene, period_a * s_a, x_mid + target * (x_a - x_mid),
                                v_mid + target * (v_a - v_mid))
-            history, s, x, v = self._newton(start, period_a, "closest")
+            try:
+                history, s_new, x_new, v_new = self._newton(start, period_a, "closest")
+                E_new = has.value(x_new[0], v_new[0])
+                if E_new is None:
+                    raise SolveError("no energy at the orbit's start")
+            except faults.Interrupted:  # a signal is no failure to work around
+                raise
+            except SolveError as exc:
+                halvings += 1
+                if halvings > AMPLITUDE_HALVINGS:
+                    exc.reached = (s, x, v, period, E)
+                    raise
+                anchor, points = (s, x, v, period), [(1.0, E)]  # on from the last orbit
+                continue
+            s, x, v, E = s_new, x_new, v_new, E_new
             iterations += history["iterations"]
-            period, E = float(self.problem.T_c.value), has.value(x[0], v[0])
-            if E is None:
-                raise SolveError("no energy at the orbit's start")
+            steps, halvings, period = steps + 1, 0, float(self.problem.T_c.value)
             points.append((target, E))
-        raise SolveError(f"the amplitude steps did not reach E = {energy:.10g}")
+        error = SolveError(f"the amplitude steps did not reach E = {energy:.10g}")
+        error.reached = (s, x, v, period, points[-1][1])
+        raise error
 
     def solve(self, scene, x0: np.ndarray, v0: np.ndarray, T0: float, mode: str = "closest",
               energy: Optional[float] = None, check: bool = True,
@@ -584,7 +638,8 @@ class Orbits:
         tic = time.perf_counter()
         other = None  # the same orbit at degree p + 1, from the same guess
         if companion is not None and check:
-            if history.get("energy_stages") or "amplitude_steps" in history:  # from the orbit
+            if history.get("energy_stages") or "amplitude_steps" in history or \
+                    "base_restarts" in history:  # from the orbit
                 # found, not again in stages
                 other = companion.solve(scene, x[0], v[0], T, mode, energy, check=False,
                                         guess=OrbitGuess(scene, T * s, x, v))
@@ -610,21 +665,38 @@ class Orbits:
         # estimate sees the error of the orbit's start as well as the flow's
         other_z0, other_T = ((np.concatenate([other.x[0], other.v[0]]), other.period)
                              if other is not None else (z0, T))
+        field = vector_field(scene)
+        direction, other_direction = field(z0), field(other_z0)
+        # multipliers: the pair at 1 (the flow's direction and the family's), the nontrivial
+        trivial, lam_n = trivial_c, lam_c_n = floquet_multipliers(Phi, direction)
+        off_before = np.inf
         while check:  # finer slabs until the multipliers' estimate meets FLOW_TARGET
             _, Phi, Phi_c = self.flow(scene, z0, T, flow_cells, other_z0, other_T, extent)
-            error = multiplier_distance(*(nontrivial(np.linalg.eigvals(m)) for m in (Phi, Phi_c)))
-            if error <= FLOW_TARGET or 2 * flow_cells > FLOW_MAX_CELLS:
+            trivial, lam_n = floquet_multipliers(Phi, direction)
+            trivial_c, lam_c_n = floquet_multipliers(Phi_c, other_direction)
+            error = multiplier_distance(lam_n, lam_c_n)
+            # the pair at 1 is held to MULTIPLIER_TOL only, and only while finer slabs bring it
+            # nearer: it carries the orbit's own error too (4e-11 where the nontrivial agree to
+            # 1e-12), and round-off far from the origin (3e-4 at 1e4, 5e6 times the extent)
+            off = max(_off_one(trivial), _off_one(trivial_c))
+            settled = off <= MULTIPLIER_TOL or off > 0.5 * off_before
+            if (error <= FLOW_TARGET and settled) or 2 * flow_cells > FLOW_MAX_CELLS:
                 break
-            flow_cells *= 2
+            flow_cells, off_before = 2 * flow_cells, off
         flow_compile_s = self.flow.new_setup_s()
         flow_s = time.perf_counter() - tic - flow_compile_s
         closure = float(np.abs(zT - z0).max())
         folds = [k for k, z in enumerate(parts, start=2)
                  if np.abs(z - z0).max() <= CLOSURE_TOL * extent]
-        lam, lam_c, lam_check = (np.linalg.eigvals(m) for m in (Phi, Phi_c, Phi_check))
+        trivial_check, lam_check_n = floquet_multipliers(Phi_check, direction)
+        lam = np.concatenate([trivial, lam_n])
         lam = lam[np.lexsort((lam.imag, -np.abs(lam)))]
-        multipliers_error = multiplier_distance(nontrivial(lam), nontrivial(lam_c))
-        multipliers_check = multiplier_distance(nontrivial(lam), nontrivial(lam_check))
+        multipliers_error = multiplier_distance(lam_n, lam_c_n)
+        multipliers_check = multiplier_distance(lam_n, lam_check_n)
+        # the pair's distance from 1: its error, known exactly (estimate.trivial_multipliers);
+        # the nontrivial ones are vouched for by degree p + 1 and DOP853, not by it (far from
+        # the origin the pair is off by round-off in tangents that the others do not need)
+        trivial_error = _off_one(trivial) if check else 0.0
         # eigenvalues carry round-off of about eps |Phi| each: a multiplier far below the
         # largest (its inverse, in a reversible system) is known no better than that
         roundoff = float(len(Phi) * np.finfo(float).eps * np.linalg.norm(Phi, 2)) if check else 0.0
@@ -633,7 +705,7 @@ class Orbits:
             t=list(T * s), x=x.tolist(), v=v.tolist(),
             multipliers=[[float(z.real), float(z.imag)] for z in lam],
             nontrivial_multipliers=[[float(z.real), float(z.imag)] for z in
-                                    sorted(lam, key=lambda z: abs(z - 1))[2:]],
+                                    sorted(lam_n, key=lambda z: abs(z - 1))],
             closure=closure, closure_relative=closure / (extent if extent > 0 else scale),
             newton=history, timings={"compile_s": self.compile_s + flow_compile_s,
                                      "guess_s": guess_s,
@@ -641,7 +713,7 @@ class Orbits:
                                      "monodromy_s": flow_s},
             degree=p.degree, cells=p.mesh.cells,
             guess={"x0": list(map(float, x0)), "v0": list(map(float, v0)), "period": T0},
-            energy=orbit_energy)
+            energy=orbit_energy, energy_target=energy if mode == "energy" else None)
         if other is not None:
             result.estimate.update(_differences(result, other), degree=other.degree)
             result.timings["estimate_s"] = estimate_s
@@ -649,6 +721,9 @@ class Orbits:
             result.estimate["multipliers"] = max(multipliers_error, roundoff)
             result.estimate["multipliers_roundoff"] = roundoff
             result.timings["monodromy_cells"] = flow_cells
+            result.estimate["trivial_multipliers"] = trivial_error
+            lam_check = np.concatenate([trivial_check, lam_check_n])
+            lam_check = lam_check[np.lexsort((lam_check.imag, -np.abs(lam_check)))]
             result.check = {"multipliers_dop853": [[float(z.real), float(z.imag)]
                                                    for z in lam_check],
                             "multipliers": multipliers_check}
@@ -697,9 +772,44 @@ class Orbits:
             result.status = "failed"
             result.message = (f"the Floquet multipliers are uncertain: degree p and p + 1 differ "
                               f"by {multipliers_error:.3g}, fem-dual and DOP853 by "
-                              f"{multipliers_check:.3g} (relative to 1 + |multiplier|); raise "
-                              "--cells or --degree")
+                              f"{multipliers_check:.3g} (relative to 1 + |multiplier|); "
+                              + (f"the orbit lies at {scale:.3g}, {scale / extent:.3g} times "
+                                 "its extent, where the tangents of fem-dual's slabs lose "
+                                 "digits to round-off: shift the coordinates to put its centre "
+                                 "near the origin (the force of x + c)"
+                                 if scale > OFFSET_RATIO * extent else
+                                 "raise --cells or --degree"))
         return result
+
+
+def _below_centre(scene, has: Energy, x: np.ndarray, energy: float, reached: float) -> None:
+    """SolveError when E lies below the energy of the equilibrium that the orbit (of energy
+    `reached`) surrounds, at rest (a minimum of the potential, found from the orbit's mean):
+    no orbit of its family has that energy."""
+    from scipy.optimize import root
+
+    with np.errstate(all="ignore"):
+        found = root(scene.force_numpy, x.mean(axis=0), tol=1e-13)
+    if not found.success or not np.all(np.isfinite(found.x)):
+        return
+    from fem_dual.base_state import force_jacobian
+
+    with np.errstate(all="ignore"):
+        stiffness = -force_jacobian(scene.force_numpy, found.x)
+    if not (np.all(np.isfinite(stiffness))
+            and np.linalg.eigvalsh(0.5 * (stiffness + stiffness.T)).min() > 0):
+        return  # no minimum of the potential (a saddle between two wells): no centre
+    floor = has.value(found.x, np.zeros(len(found.x)))
+    if floor is not None and energy < floor < reached:
+        raise SolveError(f"E = {energy:.10g} lies below the energy {floor:.10g} of the "
+                         f"equilibrium x = {list(map(float, found.x))} that the orbit from the "
+                         "guess surrounds: no orbit of its family has that energy (theirs lie "
+                         "above); give a guess near another family, or a larger E")
+
+
+def _off_one(trivial: np.ndarray) -> float:
+    """The trivial pair's largest distance from 1, relative to 1 + |1| as the others'."""
+    return float(np.abs(trivial - 1).max() / 2)
 
 
 def _centre_energy(has: Energy, x: np.ndarray, v: np.ndarray) -> float:
@@ -718,17 +828,30 @@ def _kinetic_scale(scene, v: np.ndarray) -> float:
     return float(max(0.5 * w @ M @ w for w in np.asarray(v)))
 
 
+# a run's advice (options `fem-dual orbit` does not have) and what to do for an orbit instead
+_RUN_ADVICE = ("use smaller slabs or larger alpha", "use smaller slabs (more --slabs)",
+               "loosen --rtol, or raise --cells or --degree",
+               "use more slabs or cells per slab, a higher degree, or --rtol to choose the slab "
+               "lengths")
+ORBIT_ADVICE = "give a better guess (--period, --x0, --v0), or raise --cells or --degree"
+
+
 def _orbit_advice(message: str) -> str:
-    """A slab solver's advice, turned into an orbit's."""
-    return message.replace("use smaller slabs or larger alpha",
-                           "give a better guess (--period, --x0, --v0)")
+    """A slab solver's or a run's advice, turned into an orbit's."""
+    for advice in _RUN_ADVICE:
+        message = message.replace(advice, ORBIT_ADVICE)
+    return message
 
 
 def _differences(result: OrbitResult, other: OrbitResult) -> Dict[str, float]:
-    """The differences in period and vertex states of the same orbit at two degrees."""
-    return {"period": abs(other.period - result.period),
-            "state": float(np.abs(np.hstack([np.array(other.x) - np.array(result.x),
-                                             np.array(other.v) - np.array(result.v)])).max())}
+    """The differences in period, vertex states and energy (where both have one) of the same
+    orbit at two degrees."""
+    out = {"period": abs(other.period - result.period),
+           "state": float(np.abs(np.hstack([np.array(other.x) - np.array(result.x),
+                                            np.array(other.v) - np.array(result.v)])).max())}
+    if result.energy is not None and other.energy is not None:
+        out["energy"] = abs(other.energy - result.energy)
+    return out
 
 
 def orbit_family(scene, params: Dict[str, Any], x0: np.ndarray, v0: np.ndarray, T0: float,
@@ -773,8 +896,9 @@ def orbit_family(scene, params: Dict[str, Any], x0: np.ndarray, v0: np.ndarray, 
                 out.setdefault("scene", scene.name)
                 break
             except SolveError as exc:
+                exc = SolveError(_orbit_advice(str(exc)))
                 if continuation is None:
-                    raise
+                    raise exc from None
                 out["status"], out["message"] = "failed", (
                     f"continuation stopped at {continuation[0]}={value:.6g} (its first value): "
                     f"{exc}" if not steps else
@@ -838,7 +962,11 @@ def orbit_summary(record: Dict[str, Any]) -> str:
               f"  Newton     {record['newton']['iterations']} iterations; solve "
               f"{record['timings']['solve_s'] * 1e3:.1f} ms"]
     if record.get("energy") is not None:
-        lines.append(f"  energy     {record['energy']:.15g}")
+        target = record.get("energy_target")
+        lines.append(f"  energy     {record['energy']:.15g}" + (
+            f"  (asked {target:.15g}, off by {abs(record['energy'] - target):.2g})"
+            if target is not None else "") + (
+            f"  (estimated error {est['energy']:.2g})" if "energy" in est else ""))
     return "\n".join(lines)
 
 

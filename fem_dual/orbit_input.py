@@ -97,11 +97,16 @@ class Energy:
 
     @classmethod
     def of(cls, scene, x0: np.ndarray) -> Optional["Energy"]:
+        return cls.find(scene, x0)[0]
+
+    @classmethod
+    def find(cls, scene, x0: np.ndarray) -> Tuple[Optional["Energy"], str]:
+        """(the scene's Energy, "") or (None, why it has none, in words)."""
         matrices = energy_matrices(scene)
         if matrices is not None:
-            return cls(scene, matrices)
+            return cls(scene, matrices), ""
         if getattr(scene, "linear", True):
-            return None
+            return None, "a linear scene needs K symmetric and no damping"
         from fem_dual.base_state import force_jacobian
 
         rng = np.random.default_rng(0)
@@ -109,20 +114,26 @@ class Energy:
         samples = [np.asarray(x0, float)] + list(radius * rng.uniform(-1, 1, (8, scene.n)))
         references = []
         for x in samples:
+            where = f"at x = {[float(f'{c:.6g}') for c in x]}"
             with np.errstate(all="ignore"):
                 J = force_jacobian(scene.force_numpy, x)
             if not np.all(np.isfinite(J)) or \
                     np.abs(J - J.T).max() > SYMMETRY_TOL * (1.0 + np.abs(J).max()):
-                return None
+                return None, (f"the force's Jacobian is not symmetric (or not finite) {where}: "
+                              "no potential")
             reference = _potential(scene.force_numpy, x)
             if reference is None:
-                return None
+                return None, ("the potential V(x) = -int_0^1 F(sx).x ds (from the origin) is "
+                              f"not finite {where}, or adaptive quadrature cannot vouch for it")
             references.append(reference)
         for points in POTENTIAL_RULES:
             if all(abs(_gauss_potential(scene.force_numpy, x, points) - value)
                    <= POTENTIAL_TOL * scale for x, (value, scale) in zip(samples, references)):
-                return cls(scene, points=points)
-        return None
+                return cls(scene, points=points), ""
+        return None, ("the force varies too fast along the lines from the origin to the sample "
+                      f"points (within {radius:.3g} of it) for a {POTENTIAL_RULES[-1]}-point "
+                      f"Gauss rule of its potential (to {POTENTIAL_TOL:g}); a guess nearer the "
+                      "origin may pass")
 
     def value(self, x: np.ndarray, v: np.ndarray) -> Optional[float]:
         """E at one state (numpy; None where the potential cannot be integrated)."""

@@ -266,7 +266,8 @@ def test_sigint_stops_a_continuation_between_orbits_and_keeps_them(tmp_path):
                                         "a=0.5:0.6:400", "--json"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             stdin=subprocess.DEVNULL, cwd=tmp_path)
-    time.sleep(10)  # a signal during the first orbit stops the continuation after it
+    time.sleep(15)  # a signal after the first orbit stops the continuation after the orbit at
+    # hand (10 s fell inside the first orbit's guess once, with the machine loaded)
     proc.send_signal(signal.SIGINT)
     out, err = proc.communicate(timeout=300)
     assert proc.returncode == 130, err
@@ -450,3 +451,59 @@ def test_multipliers_beyond_double_precision_are_named():
     assert r.status == "failed" and "double precision" in r.message
     assert "raise --cells" not in r.message
     assert r.estimate["multipliers_roundoff"] > 1e-6
+
+
+def test_the_pair_at_1_is_deflated_not_split_by_the_jordan_block():
+    """An orbit of a family has a Jordan block at 1 in its monodromy (the flow's direction and
+    the family's): an error e in the monodromy moves its raw eigenvalues by sqrt(e), so a 1-dof
+    orbit near a separatrix printed multipliers 2.8 and 0.36 beside an estimate of 5e-15. With
+    the flow's direction deflated the pair stays within O(e) of 1, and the nontrivial ones are
+    the monodromy's own. (Found by a hostile test.)"""
+    from fem_dual.floquet import floquet_multipliers
+
+    f = np.array([0.0, 1.0, 0.0, 0.0])  # the flow's direction; the family's is e_0
+    R = np.array([[np.cos(2.0), -np.sin(2.0)], [np.sin(2.0), np.cos(2.0)]])
+    Phi = sla.block_diag([[1.0, 0.0], [50.0, 1.0]], 1.7 * R)  # a Jordan block and a pair
+    Phi = Phi + 1e-10 * np.random.default_rng(1).standard_normal((4, 4))
+    raw = np.linalg.eigvals(Phi)
+    assert np.sort(np.abs(raw - 1))[1] > 1e-5  # the raw pair: split by about sqrt(50e-10)
+    trivial, rest = floquet_multipliers(Phi, f)
+    assert np.abs(trivial - 1).max() <= 1e-8
+    assert multiplier_distance(rest, 1.7 * np.exp([2j, -2j])) <= 1e-8
+
+    r = _one_orbit(_scene("force", {"F": "-x - x**3"}), [1.0], 4.77, cells=32)
+    assert r.status == "ok", r.message
+    for m in r.multipliers + r.check["multipliers_dop853"]:
+        assert abs(complex(*m) - 1) <= 1e-8
+    assert r.estimate["trivial_multipliers"] <= 1e-8 and r.nontrivial_multipliers == []
+
+
+def test_energy_mode_says_what_it_reached_and_what_no_family_member_has(tmp_path):
+    """Mode energy prints the energy asked for beside the one reached and the estimate of the
+    energy's error (degree p against p + 1); an E below the energy of the equilibrium that the
+    guess's family surrounds is named as such, at once (it took 49 s of steps in energy to say
+    "give a guess nearer that energy"), and no orbit's advice names options of `run`. (Found by
+    a hostile test.)"""
+    proc = _cli(["force", "--F", "-x - x**3", "--x0", "0.5", "--period", "6", "--cells", "32",
+                 "--mode", "energy=0.2"], tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    line = next(x for x in proc.stdout.splitlines() if x.strip().startswith("energy"))
+    assert "asked 0.2, off by" in line and "estimated error" in line
+    proc = _cli(["force", "--F", "-x - x**3", "--x0", "0.5", "--period", "6", "--cells", "32",
+                 "--mode", "energy=-1", "--json"], tmp_path)
+    assert proc.returncode == 3
+    assert "below the energy 0 of the equilibrium x = [0.0]" in json.loads(proc.stdout)["message"]
+    from fem_dual.orbit import _orbit_advice
+
+    for advice in ("use smaller slabs (more --slabs)", "loosen --rtol, or raise --cells or "
+                   "--degree", "use smaller slabs or larger alpha"):
+        text = _orbit_advice(f"it failed; {advice}")
+        assert "--rtol" not in text and "--slabs" not in text and "--period" in text
+
+
+def test_no_energy_says_why(tmp_path):
+    """Mode energy refused for a force whose potential a 96-point rule cannot integrate from
+    the origin says so, not "no finite potential". (Found by a hostile test.)"""
+    proc = _cli(["force", "--F", "-x - 0.5*sin(40*x)", "--x0", "10", "--period", "6", "--mode",
+                 "energy=1"], tmp_path)
+    assert proc.returncode == 2 and "varies too fast" in proc.stderr
