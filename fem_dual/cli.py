@@ -518,7 +518,9 @@ def _orbit_on_root(args, config, params, mode, energy, continuation, dirs):
         try:
             record = orbit_family(config.scene, params, config.x0, config.v0, config.T,
                                   config.degree, config.cells, mode, energy, continuation,
-                                  with_estimate=not args.no_estimate)
+                                  with_estimate=not args.no_estimate,
+                                  progress=lambda line: print(f"fem-dual: {line}",
+                                                              file=sys.stderr, flush=True))
         except SolveError as exc:
             record = {"status": "interrupted" if isinstance(exc, faults.Interrupted) else
                       "failed", "message": str(exc), "scene": config.scene.name}

@@ -857,10 +857,11 @@ def _differences(result: OrbitResult, other: OrbitResult) -> Dict[str, float]:
 def orbit_family(scene, params: Dict[str, Any], x0: np.ndarray, v0: np.ndarray, T0: float,
                  degree: int, cells: int, mode: str = "closest", energy: Optional[float] = None,
                  continuation: Optional[Tuple[str, np.ndarray]] = None,
-                 with_estimate: bool = True) -> Dict[str, Any]:
+                 with_estimate: bool = True, progress=None) -> Dict[str, Any]:
     """One orbit (`continuation` None) or a family along a parameter, each orbit started from
-    the previous one. Returns the JSON object; its "status" is "ok" or "failed" (with
-    "message"), what was computed before a failure kept."""
+    the previous one; `progress(line)` hears of each step of a continuation. Returns the JSON
+    object; its "status" is "ok" or "failed" (with "message"), what was computed before a
+    failure kept."""
     from fem_dual.config import _scene
 
     has = Energy.of(scene, x0) if mode == "energy" else None
@@ -918,6 +919,9 @@ def orbit_family(scene, params: Dict[str, Any], x0: np.ndarray, v0: np.ndarray, 
                                              "closure_relative", "energy", "estimate", "status",
                                              "message", "newton", "timings")}})
             out.update(record)  # the last orbit in full
+            if progress is not None:
+                progress(f"orbit {k + 1}/{len(values)}: {continuation[0]}={value:.6g}, period "
+                         f"{result.period:.12g}, {result.status}")
             if result.status != "ok":
                 out["message"] = (f"continuation stopped at {continuation[0]}={value:.6g}: "
                                   f"{result.message}")

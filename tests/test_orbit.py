@@ -258,7 +258,6 @@ def test_a_failed_write_is_no_ok_in_orbit_json(tmp_path):
 
 def test_sigint_stops_a_continuation_between_orbits_and_keeps_them(tmp_path):
     import signal
-    import time
 
     proc = subprocess.Popen(FEM_DUAL + ["orbit", "force", "--F", "-x - a*y**2, -2*y - a*x**2",
                                         "--param", "a=0.5", "--x0", "0.3,0", "--period", "6.3",
@@ -266,9 +265,12 @@ def test_sigint_stops_a_continuation_between_orbits_and_keeps_them(tmp_path):
                                         "a=0.5:0.6:400", "--json"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             stdin=subprocess.DEVNULL, cwd=tmp_path)
-    time.sleep(15)  # a signal after the first orbit stops the continuation after the orbit at
-    # hand (10 s fell inside the first orbit's guess once, with the machine loaded)
-    proc.send_signal(signal.SIGINT)
+    seen = []  # each orbit of a continuation is reported on stderr
+    while not (seen and seen[-1].startswith("fem-dual: orbit 1/401: a=0.5, period")):
+        seen.append(proc.stderr.readline())
+        assert seen[-1], "".join(seen)  # not the end of stderr before the first orbit
+    proc.send_signal(signal.SIGINT)  # after the first orbit: the continuation stops after the
+    # orbit at hand (a fixed wait of 10 s once fell inside the first orbit's guess)
     out, err = proc.communicate(timeout=300)
     assert proc.returncode == 130, err
     assert "Traceback" not in err and "stopped" in err, err
