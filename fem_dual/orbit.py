@@ -447,6 +447,14 @@ class Orbits:
         self.scene = scene
         self.guess = GuessMotion()
         self.flow = SlabFlow(degree)
+        self._energy = (scene, energy) if energy is not None else None
+
+    def energy_of(self, scene, x0: np.ndarray) -> Optional[Energy]:
+        """Energy.of(scene, x0), once per scene (its sample quadratures take 10-100 ms, and
+        every orbit and its companion ask)."""
+        if self._energy is None or self._energy[0] is not scene:
+            self._energy = (scene, Energy.of(scene, x0))
+        return self._energy[1]
 
     def close(self) -> None:
         self.solver.close()
@@ -477,6 +485,8 @@ class Orbits:
                 raise
             except SolveError as exc:
                 failure = exc
+            if not np.any(p.w.x.array):  # no step taken: its image is this base state
+                break
             try:  # the last iterate, whose image is the next base state
                 s, x, v = self.solver.orbit_vertices()
             except SolveError:
@@ -602,7 +612,7 @@ class Orbits:
         flow; `companion`: the orbits of degree p + 1, whose orbit from the same guess is the
         error estimate. Raises SolveError."""
         p = self.problem
-        has = Energy.of(scene, x0)
+        has = self.energy_of(scene, x0)
         if mode == "energy" and has is None:
             raise InputError(f"mode energy needs a scene with an energy (linear with K "
                              f"symmetric and no damping, or a force with a potential); "
