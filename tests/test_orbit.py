@@ -111,15 +111,18 @@ def test_multipliers_of_fem_duals_own_slabs_converge_at_order_2p(ziegler_orbits,
 
 
 @pytest.mark.parametrize("degree", [2, 3])
-def test_period_and_closure_converge_at_order_2p(degree):
+def test_period_and_closure_converge_at_order_2p_plus_2(degree):
     """Ziegler's slow mode (exact period) and the curl force's orbit (period of p = 6, 64
-    cells): the period and the closure of the orbit's start converge at order 2p."""
+    cells): the period and the closure of the orbit's start converge at order 2p + 2, the
+    order of the orbit solved once more on itself as the base state (order 2p from the guess
+    alone: measured 3.99 and 6.00 for Ziegler at p = 2, 3)."""
     scene, omega, shapes = ziegler_modes()
     exact = 2 * np.pi / omega[0]
     x0 = 0.1 * shapes[:, 0] / np.abs(shapes[:, 0]).max()
-    errors, closures = _period_errors(scene, x0, 1.05 * exact, degree, [32, 64], exact)
-    assert np.log2(errors[0] / errors[1]) == pytest.approx(2 * degree, abs=0.5)
-    assert np.log2(closures[0] / closures[1]) >= 2 * degree - 0.5
+    cells = [32, 64] if degree == 2 else [16, 32]  # (p = 3 at 64 cells: 1e-12, round-off)
+    errors, closures = _period_errors(scene, x0, 1.05 * exact, degree, cells, exact)
+    assert np.log2(errors[0] / errors[1]) == pytest.approx(2 * degree + 2, abs=0.5)
+    assert np.log2(closures[0] / closures[1]) >= 2 * degree + 1.5
     force = _scene("force", CURL)
     fine = Orbits(force, 6, 64)
     try:
@@ -128,8 +131,8 @@ def test_period_and_closure_converge_at_order_2p(degree):
         fine.close()
     errors, closures = _period_errors(force, np.array([0.3, 0.0]), 6.3, degree, [16, 32],
                                       reference)
-    assert np.log2(errors[0] / errors[1]) == pytest.approx(2 * degree, abs=0.5)
-    assert np.log2(closures[0] / closures[1]) >= 2 * degree - 0.5
+    assert np.log2(errors[0] / errors[1]) == pytest.approx(2 * degree + 2, abs=0.5)
+    assert np.log2(closures[0] / closures[1]) >= 2 * degree + 1.5
 
 
 def test_a_nonlinear_orbit_closes_under_an_independent_integration():
