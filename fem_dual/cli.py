@@ -276,6 +276,9 @@ def _json_only_on_stdout() -> None:
     saved = os.dup(1)
     os.dup2(2, 1)
     _JSON_STREAM = os.fdopen(saved, "w", encoding="utf-8")
+    import atexit
+
+    atexit.register(_JSON_STREAM.close)  # (left to the interpreter's shutdown, it can warn)
 
 
 def _json_out():
