@@ -76,10 +76,13 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--recovery", default="momentum", help="primal state at the vertices: "
                    "momentum (default, from the momenta of the dual Lagrangian, order 2p) or dtp "
                    "(the DtP map with one-sided derivatives, order p)")
-    r.add_argument("--assembly", default="auto", help="linear scenes: forms (UFL forms, LU), "
-                   "kronecker (time x space Kronecker sums, matrix-free CG with a "
-                   "fast-diagonalisation preconditioner), auto (default) = kronecker from 5 "
-                   "dofs")
+    r.add_argument("--assembly", default="auto", help="pointwise (derivatives of L_d at the "
+                   "quadrature points, banded LU and Newton, every rank solving each slab), "
+                   "forms (UFL forms assembled by DOLFINx, PETSc KSP or SNES, distributed "
+                   "under mpirun), kronecker (linear scenes: time x space Kronecker sums, "
+                   "matrix-free CG); auto (default) = kronecker for linear scenes from 5 dofs, "
+                   "forms with PETSc options or beyond 20000 dual unknowns per slab, else "
+                   "pointwise")
     r.add_argument("--rtol", help="choose the slab lengths so that the estimated error stays "
                    "within atol + rtol * scale (scale: the largest |x|, |v| so far); excludes "
                    "--slabs")

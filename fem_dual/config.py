@@ -32,7 +32,17 @@ MAX_DEGREE = 10  # equispaced Lagrange bases beyond this are too ill-conditioned
 # fewest equal sub-slabs that satisfy it; the total number of time cells stays the same.
 STAGING_LIMIT = 800
 STAGING = ("auto", "off")
-ASSEMBLY = ("auto", "forms", "kronecker")
+ASSEMBLY = ("auto", "forms", "kronecker", "pointwise")
+# Auto assembly is pointwise up to this many dual unknowns per solved slab: its banded storage
+# and index arrays grow with the slab (a 1.6-million-dof Ziegler slab would take gigabytes,
+# which PETSc's sparse LU on the forms does not need).
+POINTWISE_MAX_DOFS = 20_000
+
+
+def pointwise_size(cells: int, degree: int, n: int) -> bool:
+    """Whether a slab of `cells` cells of degree `degree` (2n dual fields) is small enough for
+    auto assembly to take the pointwise path."""
+    return (cells * degree + 1) * 2 * n <= POINTWISE_MAX_DOFS
 COORDINATES = ("auto", "physical", "modal")
 REFERENCES = ("auto", "none")
 MAX_TIMES = 1_000_000  # --t-eval: at most this many times
@@ -237,6 +247,21 @@ class RunConfig:
             return Tolerance.fixed()
         return Tolerance(self.rtol, self.atol, True)
 
+    @functools.cached_property
+    def pointwise(self) -> bool:
+        """Whether the slabs are assembled pointwise and solved by banded LU (linear scenes) or
+        the dense Newton (nonlinear ones) of fem_dual.pointwise_newton: asked for, or auto
+        unless the Kronecker form is used or PETSc options are given for the slab solver
+        (--petsc-option, or under its prefix in PETSC_OPTIONS), which need the PETSc KSP or
+        SNES on the forms."""
+        if self.assembly != "auto":
+            return self.assembly == "pointwise"
+        if self.kronecker or not pointwise_size(self.slab_cells, self.degree, self.scene.n):
+            return False
+        from fem_dual.petsc_check import solver_prefix, user_options
+
+        return not user_options(solver_prefix(self.scene.name), self.petsc)
+
     @property
     def kronecker(self) -> bool:
         """Whether the slabs are solved in Kronecker form (matrix-free CG)."""
@@ -312,6 +337,10 @@ class RunConfig:
         if assembly == "kronecker" and not scene.linear:
             raise InputError(f"assembly=kronecker needs a linear scene ({scene.name} is "
                              "nonlinear)")
+        if assembly == "pointwise" and petsc_:
+            raise InputError("assembly=pointwise uses no PETSc solver: the PETSc options ("
+                             + ", ".join(f"{k}={v}" for k, v in petsc_.items())
+                             + ") need assembly=forms")
         if assembly == "kronecker" and recovery != "momentum":
             raise InputError("assembly=kronecker recovers the motion from the momenta only "
                              f"(recovery={recovery!r})")
@@ -357,6 +386,13 @@ class RunConfig:
         caller, whose own checks then answer without PETSc)."""
         from fem_dual.petsc_check import check_user_options, solver_prefix
 
+        from fem_dual.petsc_check import user_options
+
         scene = self.scene
         path = ("kronecker" if self.kronecker else "forms") if scene.linear else "snes"
-        check_user_options(solver_prefix(scene.name), self.petsc, path)
+        prefix = solver_prefix(scene.name)
+        if self.assembly == "pointwise" and user_options(prefix, self.petsc):
+            given = ", ".join(f"-{prefix}{k}" for k in user_options(prefix, self.petsc))
+            raise InputError(f"assembly=pointwise uses no PETSc solver: the PETSc options "
+                             f"({given}, from PETSC_OPTIONS) need assembly=forms")
+        check_user_options(prefix, self.petsc, path)

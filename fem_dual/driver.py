@@ -27,12 +27,13 @@ from fem_dual.errors import InputError, SolveError
 from fem_dual.modal import ModalBasis
 from fem_dual.kronecker import (KroneckerProblem, KroneckerSampler, KroneckerSolver,
                                 KroneckerSuperposition)
-from fem_dual.mpi import allreduce, bcast, input_on_root
+from fem_dual.mpi import allreduce, bcast, input_on_root, root_first
 from fem_dual.output import check_output_dir_on_root
 from fem_dual.sinks import (AcceptedSlab, Accumulator, PartialBatch, ProgressSink, Restart,
                             SlabBatch, XdmfSink)
 from fem_dual import faults
 from fem_dual.newton import NO_PROGRESS_ITS, NewtonSlabSolver
+from fem_dual.pointwise_newton import PointwiseLinearSolver, PointwiseNewtonSolver
 from fem_dual.problem import SlabProblem
 from fem_dual.recovery import VertexSampler, VertexValues
 from fem_dual.solvers import LinearSlabSolver, solver_prefix
@@ -158,10 +159,13 @@ class RunResult:
 
 
 def _solver_record(solver, prefix: str) -> Dict[str, Any]:
-    if isinstance(solver, NewtonSlabSolver):
-        return {"kind": "snes", "prefix": prefix, "newton_iterations": list(solver.iterations),
+    if isinstance(solver, (NewtonSlabSolver, PointwiseNewtonSolver)):
+        kind = "newton" if isinstance(solver, PointwiseNewtonSolver) else "snes"
+        return {"kind": kind, "prefix": prefix, "newton_iterations": list(solver.iterations),
                 "residual_norms": list(solver.residual_norms),
                 "residual_histories": [list(h) for h in solver.histories]}
+    if isinstance(solver, PointwiseLinearSolver):
+        return {"kind": "direct", "prefix": prefix, "solves": len(solver.iterations)}
     return {"kind": "ksp", "prefix": prefix, "ksp_iterations": list(solver.iterations)}
 
 
@@ -182,23 +186,43 @@ class Simulation:
         modal: linear scenes: solve in modal coordinates (fem_dual.modal); a ModalBasis is
             shared (the error companion uses its partner's).
         mesh: the slab mesh to share (the companion uses its partner's).
+        pointwise: assemble pointwise and solve by the banded LU or dense Newton of
+            fem_dual.pointwise_newton (every rank solves the whole slab), not by PETSc KSP or
+            SNES on forms distributed over `comm`; None: unless PETSc options are given.
     """
 
     def __init__(self, scene, degree: int, cells: int, comm: MPI.Comm = MPI.COMM_WORLD,
                  petsc: Optional[Dict[str, str]] = None, recovery: str = "momentum",
                  kronecker: bool = False, with_dual: bool = True, base: str = "start",
-                 modal: "bool | ModalBasis" = False, mesh=None):
-        with quiet_jit_logging():
-            self._build(scene, degree, cells, comm, petsc, recovery, kronecker, with_dual, base,
-                        modal, mesh)
+                 modal: "bool | ModalBasis" = False, mesh=None,
+                 pointwise: Optional[bool] = None):
+        if pointwise is None:  # as RunConfig's auto: unless PETSc options ask for PETSc
+            from fem_dual.config import pointwise_size
+            from fem_dual.petsc_check import user_options
+
+            pointwise = (not user_options(solver_prefix(scene.name), petsc)
+                         and pointwise_size(cells, degree, scene.n))
+        pointwise = pointwise and not kronecker
+
+        def build():
+            with quiet_jit_logging():
+                self._build(scene, degree, cells, comm, petsc, recovery, kronecker, with_dual,
+                            base, modal, mesh, pointwise)
+        # The pointwise path's forms and expressions live on COMM_SELF meshes, so every rank
+        # would compile the same code at the same time: FFCx lets one write it and the others
+        # wait 10 s for it, then fail, alone, leaving the rest in a collective. Rank 0
+        # compiles first; the others load its cache.
+        root_first(comm, build) if pointwise else build()
 
     def _build(self, scene, degree: int, cells: int, comm: MPI.Comm,
                petsc: Optional[Dict[str, str]], recovery: str, kronecker: bool,
-               with_dual: bool, base: str, modal: "bool | ModalBasis", mesh=None) -> None:
+               with_dual: bool, base: str, modal: "bool | ModalBasis", mesh=None,
+               pointwise: Optional[bool] = None) -> None:
         tic = time.perf_counter()
         self.scene, self.degree, self.cells, self.comm = scene, degree, cells, comm
         self.prefix = solver_prefix(scene.name)
         self.recovery, self.kronecker, self.petsc, self.base = recovery, kronecker, petsc, base
+        self.pointwise = pointwise
         self.modal = modal if isinstance(modal, ModalBasis) else (ModalBasis(scene) if modal
                                                                   else None)
         solved = self.modal.scene if modal else scene  # the scene whose slabs are solved
@@ -206,6 +230,12 @@ class Simulation:
             self.problem = KroneckerProblem(solved, degree, cells, comm, base)
             self.solver = KroneckerSolver(self.problem, self.prefix, petsc)
             self.sampler = KroneckerSampler(self.problem, with_dual=with_dual)
+        elif pointwise:  # the slab is small: every rank holds and solves it whole
+            self.problem = SlabProblem(solved, degree, cells, MPI.COMM_SELF, base, mesh)
+            self.solver = (PointwiseLinearSolver if scene.linear
+                           else PointwiseNewtonSolver)(self.problem)
+            self.sampler = VertexSampler(self.problem, with_dual=with_dual, recovery=recovery,
+                                         momenta=self.solver.local.momenta)
         else:
             self.problem = SlabProblem(solved, degree, cells, comm, base, mesh)
             solver_class = LinearSlabSolver if scene.linear else NewtonSlabSolver
@@ -251,7 +281,7 @@ class Simulation:
         """The simulation that runs `config` (its staged cells per slab)."""
         return cls(config.scene, config.degree, config.slab_cells, comm, config.petsc,
                    config.recovery, config.kronecker, base=config.base_state,
-                   modal=config.modal)
+                   modal=config.modal, pointwise=config.pointwise)
 
     @property
     def companion(self) -> "Simulation":
@@ -263,7 +293,8 @@ class Simulation:
                                          with_dual=False, base=self.base,
                                          modal=self.modal is not None and self.modal,
                                          mesh=getattr(self.problem, "mesh", None)
-                                         if not self.kronecker else None)
+                                         if not self.kronecker else None,
+                                         pointwise=self.pointwise)
             self.setup_s += self._companion.setup_s
         return self._companion
 
@@ -278,7 +309,7 @@ class Simulation:
                                              else self.modal.scene)
             self.scene = config.scene
         self.solver.reset()
-        if isinstance(self.solver, NewtonSlabSolver):  # guessed slab lengths: give up early
+        if hasattr(self.solver, "patience"):  # Newton: guessed slab lengths give up early
             self.solver.patience = NO_PROGRESS_ITS if config.rtol is not None else None
         self.superposition = None
         self.tangent_solves = 0
@@ -372,6 +403,10 @@ class Simulation:
         the mean of those in dz and -dz, of size `relative`, error O(relative^2)). The size is
         relative to `scale` (the size of the motion, e.g. an orbit's extent), by default to
         that of z0. Collective; call it right after the slab was solved."""
+        if getattr(self.solver, "exact_tangents", False):  # the pointwise Newton's: exact
+            if not np.any(dz):
+                return np.zeros((len(values.s), 2 * self.scene.n))
+            return self.solver.exact_tangent(dz)
         if central and not self.scene.linear:
             ahead = self._tangent(z0, dz, t0, dt, values, relative, scale)
             behind = self._tangent(z0, -dz, t0, dt, values, relative, scale)
@@ -437,9 +472,9 @@ class Simulation:
         """Solve the dual problem slab by slab, recover the primal motion, estimate its error,
         compare with the reference (see `run`)."""
         if ((config.scene.name, config.degree, config.slab_cells, config.recovery,
-             config.kronecker, config.base_state, config.modal)
+             config.kronecker, config.base_state, config.modal, config.pointwise)
                 != (self.scene.name, self.degree, self.cells, self.recovery, self.kronecker,
-                    self.base, self.modal is not None)):
+                    self.base, self.modal is not None, self.pointwise)):
             raise ValueError("the configuration does not match the compiled simulation")
         self.begin(config)
         self.companion.begin(config)
@@ -676,14 +711,15 @@ def _recurrence(sim: Simulation, state: _LoopState, dt: float,
     phi, lend = sim.slab_maps(dt)
     Z = np.empty((count + 1, len(state.z)))
     Z[0] = state.z
-    for j in range(count):
-        Z[j + 1] = phi @ Z[j]
+    for j in range(count):  # (into the rows: no temporaries, a third of the loop's time)
+        np.dot(phi, Z[j], out=Z[j + 1])
     lost = sim.unresolved(Z[:-1], dt)
     carried = Z[:-1] @ lend.T + (0.0 if lost is None else lost)
     D = np.empty_like(Z)
     D[0] = state.d
     for j in range(count):
-        D[j + 1] = carried[j] + phi @ D[j]
+        np.dot(phi, D[j], out=D[j + 1])
+        D[j + 1] += carried[j]
     return Z, D, lost
 
 
@@ -732,12 +768,8 @@ def _judge_chunk(config: RunConfig, state: _LoopState, schedule: SlabSchedule,
     # the length (SlabSchedule.accept: below 1 it shortens, from 2 on it may grow)
     order = 2 * config.degree
     done = int(np.argmin(ok)) if not ok.all() else count
-    trial, states = copy.copy(schedule), []
-    for factor in step_factors(est.err_local[:done], order):
-        trial.accept(float(factor))
-        states.append(trial.state)
-        if trial.length != schedule.length:
-            break
+    trial = copy.copy(schedule)
+    states = trial.accept_run(step_factors(est.err_local[:done], order))
     done, batch = len(states), None
     if done:
         batch = SlabBatch(state.k, t0s[:done], np.full(done, dt), _slice(vals, done),
@@ -1002,6 +1034,10 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool,
         if scene.linear:
             record["weighting"] = scene.weighting()
             record["assembly"] = "kronecker" if sim.kronecker else "forms"
+        else:
+            record["assembly"] = "pointwise" if sim.pointwise else "forms"
+        if scene.linear and sim.pointwise:
+            record["assembly"] = "pointwise"
         record["base"] = config.base_state
         if scene.linear:
             record["coordinates"] = "modal" if sim.modal is not None else "physical"

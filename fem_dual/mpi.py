@@ -7,7 +7,8 @@ from typing import Any
 import numpy as np
 from mpi4py import MPI
 
-__all__ = ["allreduce", "gather_rows", "bcast", "print0", "is_root", "input_on_root"]
+__all__ = ["allreduce", "gather_rows", "bcast", "print0", "is_root", "input_on_root",
+           "root_first"]
 
 
 def is_root(comm: MPI.Comm) -> bool:
@@ -28,6 +29,8 @@ def allreduce(comm: MPI.Comm, value: Any, op: str = "sum") -> Any:
 
 def gather_rows(comm: MPI.Comm, rows: np.ndarray) -> "np.ndarray | None":
     """Concatenate the 2D arrays of all ranks on rank 0 (None elsewhere)."""
+    if comm.size == 1:  # (mpi4py would pickle a copy)
+        return rows
     parts = comm.gather(np.ascontiguousarray(rows), root=0)
     if comm.rank != 0:
         return None
@@ -60,3 +63,29 @@ def input_on_root(comm: MPI.Comm, build: Any) -> Any:
     if problem:
         raise InputError(problem)
     return value
+
+
+def root_first(comm: MPI.Comm, action: Any) -> None:
+    """action() on rank 0, then on the other ranks (what rank 0 leaves behind, a JIT cache,
+    they reuse). An exception on rank 0 is raised there and, as the same kind of error with the
+    same message, on every other rank (none of them runs action then). Collective."""
+    from fem_dual.errors import InputError, SolveError
+
+    if comm.size == 1:
+        action()
+        return
+    failure = None
+    if comm.rank == 0:
+        try:
+            action()
+        except Exception as exc:  # noqa: BLE001 -- shared, then raised on every rank
+            failure = exc
+    what = comm.bcast(None if failure is None else (type(failure).__name__, str(failure)),
+                      root=0)
+    if failure is not None:
+        raise failure
+    if what is not None:
+        kinds = {"InputError": InputError, "SolveError": SolveError}
+        raise kinds.get(what[0], RuntimeError)(what[1])
+    if comm.rank != 0:
+        action()

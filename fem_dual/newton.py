@@ -8,7 +8,7 @@ evaluation first solves the pointwise DtP equations at the quadrature points.
 from __future__ import annotations
 
 import math
-from typing import Dict, List, Mapping, Optional
+from typing import Dict, List, Mapping, Optional, Tuple
 
 import numpy as np
 
@@ -22,7 +22,7 @@ from fem_dual.problem import SlabProblem
 from fem_dual.solvers import CompiledSlab, SolverOptions, direct_solver
 from fem_dual.stepper import stalled
 
-__all__ = ["NEWTON_DEFAULTS", "NewtonSlabSolver", "NO_PROGRESS_ITS"]
+__all__ = ["NEWTON_DEFAULTS", "NewtonSlabSolver", "NO_PROGRESS_ITS", "difference_step"]
 
 _REASONS = {getattr(PETSc.SNES.ConvergedReason, name): name
             for name in dir(PETSc.SNES.ConvergedReason) if name.isupper()}
@@ -58,10 +58,13 @@ ROUND_OFF_ABSOLUTE = 1e-12
 # of its first residual after NO_PROGRESS_ITS iterations is taking damped steps far from the
 # solution, and the driver halves the slab now rather than after snes_max_it (curl3d T = 8
 # --rtol 1e-8: four guesses failed after 30 iterations each, a third of the run, 46 -> 29 ms).
-# Slabs the user fixed keep every iteration (curl2d-lifted, 4 slabs: one converges after 19,
-# at 0.38 of its start after 10).
-NO_PROGRESS_ITS = 10
-NO_PROGRESS_RATIO = 1e-2
+# Measured there: every Newton that converged was below 3e-4 of its first residual after three
+# iterations; every one that failed was above 0.5, its full steps raising the residual tenfold
+# and the line search cutting them to a tenth (its five failures took 10 iterations each, half
+# of the run's evaluations). Slabs the user fixed keep every iteration (curl2d-lifted, 4 slabs:
+# one converges after 19, at 0.38 of its start after 10).
+NO_PROGRESS_ITS = 3
+NO_PROGRESS_RATIO = 0.1
 _R = PETSc.SNES.ConvergedReason
 
 
@@ -77,6 +80,22 @@ def at_round_off(history: List[float], size: float) -> bool:
     if not history or not math.isfinite(history[-1]):
         return False
     return history[-1] <= round_off_floor(history, size)
+
+
+def difference_step(z0: np.ndarray, dz: np.ndarray, relative: float,
+                    scale: Optional[float]) -> Tuple[np.ndarray, float]:
+    """(z0 + eps dz, eps) of a difference quotient in the start state: eps is `relative` times
+    `scale` (by default the size of z0 and dz) over the size of dz; along one component, the
+    step z0 + eps dz - z0 as rounded."""
+    size = float(np.abs(dz).max(initial=0.0))
+    if scale is None or not scale > 0:
+        scale = max(float(np.abs(z0).max(initial=0.0)), size)
+    eps = relative * scale / size
+    z1 = z0 + eps * dz
+    if np.count_nonzero(dz) == 1:  # the step that was taken, not the one asked for
+        j = int(np.flatnonzero(dz)[0])
+        eps = float(z1[j] - z0[j]) / float(dz[j])
+    return z1, eps
 
 
 class NewtonSlabSolver(CompiledSlab):
@@ -246,14 +265,7 @@ class NewtonSlabSolver(CompiledSlab):
         one component, the step z0 + eps dz - z0 as rounded). `restore(z0)` goes back.
         Collective."""
         p, n = self.problem, self.problem.n
-        size = float(np.abs(dz).max(initial=0.0))
-        if scale is None or not scale > 0:
-            scale = max(float(np.abs(z0).max(initial=0.0)), size)
-        eps = relative * scale / size
-        z1 = z0 + eps * dz
-        if np.count_nonzero(dz) == 1:  # the step that was taken, not the one asked for
-            j = int(np.flatnonzero(dz)[0])
-            eps = float(z1[j] - z0[j]) / float(dz[j])
+        z1, eps = difference_step(z0, dz, relative, scale)
         r0 = self._converged_residual()
         r1 = self.b.duplicate()
         p.set_start(z1[:n], z1[n:])

@@ -108,6 +108,7 @@ class OrbitProblem(SlabProblem):
         self.t0 = constant(msh, 0.0)
         base = vector_space(msh, degree + 1, n)
         self.xbar, self.vbar = fem.Function(base), fem.Function(base)
+        self.xb, self.vb, self.Zbar = self.xbar, self.vbar, None  # the base state in the UFL
         nodes = fem.FunctionSpace(msh, ("Lagrange", degree + 1))
         self.base_nodes = nodes.tabulate_dof_coordinates()[:, 0]  # s of the base state's nodes
         w = self.w

@@ -80,13 +80,25 @@ class SlabProblem:
             self._base_times = nodes.tabulate_dof_coordinates()[:, 0]
         else:
             self.xbar, self.vbar = constant(msh, zero), constant(msh, zero)
+        # the base state in the UFL: a variable where it is a constant, so that the pointwise
+        # assembly can differentiate the density in it (exact tangents of the slab map)
+        self.Zbar = None if self.predictor is not None else ufl.variable(
+            ufl.as_vector([*(self.xbar[i] for i in range(n)), *(self.vbar[i] for i in range(n))]))
+        self.xb, self.vb = ((self.xbar, self.vbar) if self.Zbar is None else
+                            (ufl.as_vector([self.Zbar[i] for i in range(n)]),
+                             ufl.as_vector([self.Zbar[n + i] for i in range(n)])))
 
-        w = self.w
-        self.xi = ufl.as_vector([w[i] for i in range(n)])
-        self.eta = ufl.as_vector([w[n + i] for i in range(n)])
-        self.dxi = ufl.as_vector([w[i].dx(0) for i in range(n)]) / self.dt
-        self.deta = ufl.as_vector([w[n + i].dx(0) for i in range(n)]) / self.dt
-        self.extra = ufl.as_vector([w[2 * n + i] for i in range(extra)]) if extra else None
+        # The dual fields at a point, U = w, and their derivatives in s, Us = dw/ds, are UFL
+        # variables: the forms differentiate through them (ufl.derivative in w), and the
+        # pointwise assembly (fem_dual.local_action) differentiates the density in them.
+        w, bs = self.w, 2 * n + extra
+        self.U = U = ufl.variable(ufl.as_vector([w[i] for i in range(bs)]))
+        self.Us = Us = ufl.variable(ufl.as_vector([w[i].dx(0) for i in range(bs)]))
+        self.xi = ufl.as_vector([U[i] for i in range(n)])
+        self.eta = ufl.as_vector([U[n + i] for i in range(n)])
+        self.dxi = ufl.as_vector([Us[i] for i in range(n)]) / self.dt
+        self.deta = ufl.as_vector([Us[n + i] for i in range(n)]) / self.dt
+        self.extra = ufl.as_vector([U[2 * n + i] for i in range(extra)]) if extra else None
 
         f, c = scene.forms, self.c
         M = c["M"]
@@ -98,10 +110,12 @@ class SlabProblem:
         self.xhat, self.vhat, self.L_d = self._reduced_lagrangian(qdeg)
         self.hamiltonian = self.hamiltonian_of(self.xhat, self.vhat)
 
+        self.quadrature_degree = qdeg
         self.dx = ufl.Measure("dx", domain=msh, metadata={"quadrature_degree": qdeg})
         ds = ufl.Measure("ds", domain=msh, subdomain_data=self.mesh.tags)
-        initial = boundary_term(self.xi, self.eta, M, self.x0, self.v0)
-        self.action = self.L_d * self.dt * self.dx + initial * ds(START)
+        self.initial = boundary_term(self.xi, self.eta, M, self.x0, self.v0)
+        self.density = self.L_d * self.dt  # the action per unit of s
+        self.action = self.density * self.dx + self.initial * ds(START)
         self.residual = ufl.derivative(self.action, w, ufl.TestFunction(self.W))
         self.jacobian = ufl.derivative(self.residual, w, ufl.TrialFunction(self.W))
 
@@ -121,11 +135,11 @@ class SlabProblem:
         dtp_args = (self.xi, self.eta, self.dxi, self.deta - self.mu * self.eta
                     if self.mu is not None else self.deta)
         if self.extra is not None:  # lifted scene: augmented Lagrangian, auxiliary primal
-            xhat, vhat, lifted = f.dtp_map(*args, self.xbar, self.vbar, c, self.extra)
-            L_d = f.lagrangian(xhat, vhat, lifted, *args, self.extra, self.xbar, self.vbar, c)
+            xhat, vhat, lifted = f.dtp_map(*args, self.xb, self.vb, c, self.extra)
+            L_d = f.lagrangian(xhat, vhat, lifted, *args, self.extra, self.xb, self.vb, c)
             return xhat, vhat, L_d
         if f.dtp == "explicit":
-            xhat, vhat = f.dtp_map(*dtp_args, self.xbar, self.vbar, c)
+            xhat, vhat = f.dtp_map(*dtp_args, self.xb, self.vb, c)
         else:
             # Newton-linearised DtP map around the pointwise solution X of G(X) = 0 at the
             # quadrature points: x^ = X - G_x(X)^-1 G(X; xi, eta, xi'). Equal to X where G = 0,
@@ -141,9 +155,9 @@ class SlabProblem:
             self.pointwise = PointwiseDtP(Qx, points, self.position_equations, self.time, Qt)
             X, Ginv = self.pointwise.X, self.pointwise.Ginv
             xhat = X - ufl.dot(Ginv, self.position_equations(X))
-            vhat = f.velocity_map(self.xi, dtp_args[3], self.vbar, c)
-        L_d = predual_lagrangian(xhat, vhat, *args, c["M"], self.force, self.aux, self.xbar,
-                                 self.vbar, damping)
+            vhat = f.velocity_map(self.xi, dtp_args[3], self.vb, c)
+        L_d = predual_lagrangian(xhat, vhat, *args, c["M"], self.force, self.aux, self.xb,
+                                 self.vb, damping)
         return xhat, vhat, L_d
 
     mu = None  # an unfolding damping -mu M v (fem_dual.orbit); slabs have none
@@ -160,7 +174,7 @@ class SlabProblem:
 
     def position_equations(self, x):
         """G(x; xi, eta, xi') = 0, the implicit position part of the DtP map."""
-        return self.scene.forms.position_equations(x, self.xi, self.eta, self.dxi, self.xbar,
+        return self.scene.forms.position_equations(x, self.xi, self.eta, self.dxi, self.xb,
                                                    self.c)
 
     def set_scene_constants(self, scene: Scene) -> None:
@@ -181,8 +195,8 @@ class SlabProblem:
         if self.extra is not None:
             return -ufl.dot(xhat, self.dxi) - ufl.dot(ufl.dot(self.c["M"], vhat), self.deta) \
                 - self.L_d
-        return dual_hamiltonian(xhat, vhat, self.xi, self.eta, self.force, self.aux, self.xbar,
-                                self.vbar, self.damping())
+        return dual_hamiltonian(xhat, vhat, self.xi, self.eta, self.force, self.aux, self.xb,
+                                self.vb, self.damping())
 
     def close(self) -> None:
         """Destroy the PETSc vector of the dual state (solvers made it); collective."""

@@ -26,7 +26,6 @@ from typing import Optional
 
 import numpy as np
 import ufl
-from scipy import sparse
 
 from dolfinx import fem
 from petsc4py import PETSc
@@ -90,15 +89,19 @@ class VertexSampler:
         problem: the slab problem.
         with_dual: also sample xi and eta (for XDMF output); off when no output is asked for.
         recovery: "momentum" (superconvergent, the default) or "dtp" (the DtP formula).
+        momenta: what gives the momenta at the cell ends (a callable returning (cells, 2, 2n),
+            the pointwise assembly's `LocalAction.momenta`); by default CellMomenta.
     """
 
     def __init__(self, problem: SlabProblem, with_dual: bool = False,
-                 recovery: str = "momentum"):
+                 recovery: str = "momentum", momenta=None):
         if recovery not in RECOVERIES:
             raise ValueError(f"recovery={recovery!r} is not one of {RECOVERIES}")
         self.problem = problem
         self.with_dual = with_dual
-        self.momenta = CellMomenta(problem) if recovery == "momentum" else None
+        self.momenta = None
+        if recovery == "momentum":
+            self.momenta = momenta if momenta is not None else CellMomenta(problem)
         n = problem.n
         msh = problem.mesh.msh
         ends = np.array([0.0, 1.0])
@@ -110,7 +113,9 @@ class VertexSampler:
             # H_d of the recovered state and the nodal duals: as accurate as the state
             space = vector_space_dg1(msh, n)
             xhat, vhat = fem.Function(space), fem.Function(space)
-            self._state = (xhat, vhat, space.dofmap.list.array.reshape(-1, 2)[:cells])
+            dofs = space.dofmap.list.array.reshape(-1, 2)[:cells]
+            flat = (dofs[..., None] * n + np.arange(n)).ravel()  # (cell, end, component)
+            self._state = (xhat.x.array, vhat.x.array, flat)
             hamiltonian = problem.hamiltonian_of(xhat, vhat)
         elif problem.pointwise is not None:  # implicit DtP: solve G = 0 at the cell ends
             space = vector_space_dg1(msh, n)
@@ -123,12 +128,14 @@ class VertexSampler:
         self._eval = CellPointEvaluator(ufl.as_vector(parts), ends)
         self._cells = np.arange(problem.mesh.msh.topology.index_map(1).size_local, dtype=np.int32)
         self._n = n
-        self._mean: Optional[sparse.csr_matrix] = None  # rows -> vertex means, built once
+        self._ends: Optional[tuple] = None  # the rows of each vertex, found once
+        self._minv: Optional[tuple] = None  # (M, M^-1)
 
     def close(self) -> None:
         """Destroy the PETSc objects of the momenta (collective)."""
-        if self.momenta is not None:
-            self.momenta.close()
+        close = getattr(self.momenta, "close", None)
+        if close is not None:
+            close()
 
     def __call__(self) -> Optional[VertexValues]:
         """Sample the current dual solution; the result lives on rank 0 (None elsewhere).
@@ -150,10 +157,9 @@ class VertexSampler:
         if self._state is not None:  # x, v from the momenta into DG1, then evaluate
             n = self._n
             momenta = self.momenta()  # (cells, end, 2n)
-            X, V, dofs = self._state
-            X.x.array.reshape(-1, n)[dofs] = momenta[..., :n]
-            V.x.array.reshape(-1, n)[dofs] = np.linalg.solve(self.problem.c["M"].value,
-                                                             momenta[..., n:, None])[..., 0]
+            X, V, flat = self._state
+            X[flat] = momenta[..., :n].ravel()
+            V[flat] = (momenta[..., n:] @ self._mass_inverse().T).ravel()
             local = self._eval(self._cells).reshape(-1, self._eval.value_size)
         else:
             local = self._eval(self._cells).reshape(-1, self._eval.value_size)
@@ -161,26 +167,30 @@ class VertexSampler:
                 n = self._n
                 momenta = self.momenta().reshape(-1, 2 * n)
                 local[:, 1:1 + n] = momenta[:, :n]
-                local[:, 1 + n:1 + 2 * n] = np.linalg.solve(self.problem.c["M"].value,
-                                                            momenta[:, n:].T).T
+                local[:, 1 + n:1 + 2 * n] = momenta[:, n:] @ self._mass_inverse().T
         return gather_rows(self.problem.comm, local)
+
+    def _mass_inverse(self) -> np.ndarray:
+        """M^-1, computed again when M changes (a scene's parameters)."""
+        scene = self.problem.scene  # (a new scene object for new parameters)
+        if self._minv is None or self._minv[0] is not scene:
+            self._minv = (scene, np.linalg.inv(self.problem.c["M"].value))
+        return self._minv[1]
 
     def average(self, rows: np.ndarray) -> VertexValues:
         """Vertex values from the one-sided rows (rows, columns): the mean of the rows that
         share a vertex. Rows of many slabs (slabs, rows, columns) give values with a leading
         slab axis."""
         flat = rows if rows.ndim == 2 else rows[0]
-        if self._mean is None or self._mean.shape[1] != len(flat):  # the rows' order never changes
-            s, inverse = np.unique(flat[:, 0], return_inverse=True)
-            count = np.bincount(inverse).astype(float)
-            self._mean = sparse.csr_matrix((1.0 / count[inverse], (inverse, np.arange(len(flat)))),
-                                           shape=(len(s), len(flat)))
-        if rows.ndim == 2:
-            mean = self._mean @ rows
-        else:
-            slabs, count, cols = rows.shape
-            stacked = rows.transpose(1, 0, 2).reshape(count, slabs * cols)
-            mean = (self._mean @ stacked).reshape(-1, slabs, cols).transpose(1, 0, 2)
+        if self._ends is None or self._ends[2] != len(flat):  # the rows' order never changes
+            _, inverse, count = np.unique(flat[:, 0], return_inverse=True, return_counts=True)
+            if count.max(initial=0) > 2:
+                raise RuntimeError("a vertex of the time mesh has more than two cells")
+            grouped = np.argsort(inverse, kind="stable")
+            starts = np.concatenate([[0], np.cumsum(count)[:-1]])
+            self._ends = (grouped[starts], grouped[starts + count - 1], len(flat))
+        first, last, _ = self._ends  # the one or two rows of each vertex (x/2 is exact)
+        mean = 0.5 * rows[..., first, :] + 0.5 * rows[..., last, :]
         s = mean[..., 0] if rows.ndim == 2 else mean[0, :, 0]
         n = self._n
         values = VertexValues(s=s, x=mean[..., 1:1 + n], v=mean[..., 1 + n:1 + 2 * n],

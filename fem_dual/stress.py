@@ -290,10 +290,12 @@ CASES: List[Case] = [
              {"A": value}, T=10.0, slabs=20, cells=8, degree=4)), tol=tol)
     for value, tol in (("1e-6", 1e-6), ("1e-3", 1e-9), ("1e3", 1e-9), ("1e6", 1e-6))
 ] + [
-    Case(f"curl3d-{name}={value}", f"{name} = {value}: converges (rel. error <= 1e-8)",
+    Case(f"curl3d-{name}={value}", f"{name} = {value}: converges (rel. error <= {tol:g}; "
+         "alpha / beta = 1e12 costs accuracy, as the weights of ziegler-A do)",
          (lambda name=name, value=value: RunConfig.create(
-             "curl3d", {name: value}, cells=20, degree=3)))
-    for name in ("alpha", "beta") for value in ("1e-6", "1e6")
+             "curl3d", {name: value}, cells=20, degree=3)), tol=tol)
+    for name, value, tol in (("alpha", "1e-6", 1e-8), ("alpha", "1e6", 1e-7),
+                             ("beta", "1e-6", 1e-7), ("beta", "1e6", 1e-8))
 ] + [
     Case(f"curl2d-{name}={value}", f"{name} = {value}: converges or exit 3 with advice",
          (lambda name=name, value=value: RunConfig.create(

@@ -131,6 +131,36 @@ class SlabSchedule:
             length //= 2
         self.length = length
 
+    def accept_run(self, factors) -> list:
+        """`accept` slab after slab with the step factors `factors`, stopping after the first
+        slab whose factor changes the length; returns the state after each accepted slab.
+        Vectorised where no rejected length is remembered (a chunk of hundreds of equal slabs
+        of a linear scene took a millisecond slab by slab); the same states as `accept`."""
+        factors = np.asarray(factors, dtype=float)
+        if self.ceiling or not len(factors):
+            states = []
+            for factor in factors:
+                length = self.length
+                self.accept(float(factor))
+                states.append(self.state)
+                if self.length != length:
+                    break
+            return states
+        k = np.arange(1, len(factors) + 1)
+        length = self.length
+        pos = np.minimum(self.pos + k * length, self.total)  # (the last slab may be short)
+        scaled = length * (factors if self.shrinks else np.maximum(factors, 1.0))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            units = np.clip(np.nan_to_num(scaled, nan=1.0), 1.0, float(self.nominal))
+            candidate = np.left_shift(1, np.floor(np.log2(units)).astype(np.int64))
+        lowest = pos & -pos  # the largest power of two dividing pos (pos > 0)
+        candidate = np.maximum(np.minimum(candidate, np.where(pos > 0, lowest, candidate)), 1)
+        changed = np.flatnonzero(candidate != length)
+        count = int(changed[0]) + 1 if len(changed) else len(factors)
+        self.pos, self.length = int(pos[count - 1]), int(candidate[count - 1])
+        return [(int(pos[j]), int(candidate[j]), 0, self.wait, self.patience)
+                for j in range(count)]
+
     def halve(self, factor: float = 0.5) -> bool:
         """Shorten the current slab to at most `factor` (at most 1/2) of its length; False when
         it is already at the minimum length."""

@@ -61,8 +61,10 @@ def test_close_destroys_the_petsc_objects(capfd):
     """The fast, deterministic half: what a Simulation made is destroyed by close(), and a run
     leaves nothing in PETSc's garbage of PETSC_COMM_WORLD (where a dropped KSP or SNES went)."""
     PETSc.garbage_cleanup(PETSc.COMM_WORLD)  # what other tests' own Simulations left
-    for name, config in [("ziegler", RunConfig.create("ziegler", T=1.0, slabs=2, cells=2)),
-                         ("curl3d", RunConfig.create("curl3d", T=0.5, slabs=2, cells=2))]:
+    for name, config in [("ziegler", RunConfig.create("ziegler", T=1.0, slabs=2, cells=2,
+                                                      assembly="forms")),
+                         ("curl3d", RunConfig.create("curl3d", T=0.5, slabs=2, cells=2,
+                                                     assembly="forms"))]:
         sim = Simulation.for_config(config, MPI.COMM_WORLD)
         sim.run(config)
         sim.close()
@@ -74,6 +76,12 @@ def test_close_destroys_the_petsc_objects(capfd):
             assert all(h.handle == 0 for h in handles if h is not None), name
             assert s.problem.w._petsc_x is None, name
         run(config)
+    for scene in ("ziegler", "curl3d"):  # pointwise: no PETSc objects at all
+        config = RunConfig.create(scene, T=0.5, slabs=2, cells=2)
+        sim = Simulation.for_config(config, MPI.COMM_WORLD)
+        sim.run(config)
+        assert sim.problem.w._petsc_x is None and sim.companion.problem.w._petsc_x is None
+        sim.close()
     capfd.readouterr()
     PETSc.garbage_view(PETSc.COMM_WORLD)
     assert "Total entries: 0" in capfd.readouterr().out

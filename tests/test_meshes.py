@@ -84,3 +84,36 @@ def test_fixed_slabs_keep_their_length_until_one_is_rejected():
         schedule.accept(0.8)
     assert fixed.current() == (1.0, 1.0)
     assert adaptive.current() == (1.0, 0.5)
+
+
+@pytest.mark.parametrize("shrinks", [True, False])
+def test_accept_run_gives_the_states_of_accept(shrinks):
+    """SlabSchedule.accept_run (vectorised for chunks of slabs) gives the states `accept`
+    gives slab by slab, stopping after the first slab whose factor changes the length."""
+    import copy
+
+    rng = np.random.default_rng(7)
+    for trial in range(300):
+        schedule = SlabSchedule(10.0, int(rng.integers(1, 9)), int(rng.integers(0, 7)),
+                                first=float(rng.uniform(0.01, 1.0)), shrinks=shrinks)
+        for _ in range(int(rng.integers(0, 5))):  # somewhere along the run
+            if schedule.done():
+                break
+            schedule.accept(float(rng.choice([0.3, 1.0, 1.5, 2.5, 8.0])))
+        if trial % 3 == 0 and schedule.length > 1:
+            schedule.halve()  # a remembered length: the slab-by-slab path
+        remaining = (schedule.total - schedule.pos) // max(schedule.length, 1)
+        if schedule.done() or remaining < 1:
+            continue
+        factors = rng.choice([0.2, 0.9, 1.0, 1.3, 2.0, 3.7, 50.0], size=int(rng.integers(1, 40)))
+        factors = factors[:remaining]
+        one, run = copy.copy(schedule), copy.copy(schedule)
+        expected = []
+        for factor in factors:
+            length = one.length
+            one.accept(float(factor))
+            expected.append(one.state)
+            if one.length != length:
+                break
+        assert run.accept_run(factors) == expected
+        assert run.state == one.state

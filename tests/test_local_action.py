@@ -1,0 +1,138 @@
+"""The pointwise assembly (fem_dual.local_action) is the forms' assembly: the same residual and
+Jacobian to round-off, and its Newton (fem_dual.pointwise_newton) the SNES's answer."""
+import numpy as np
+import pytest
+from dolfinx.fem import petsc as fem_petsc
+from mpi4py import MPI
+
+from fem_dual import InputError, RunConfig, run
+from fem_dual.local_action import LocalAction
+from fem_dual.problem import SlabProblem
+from fem_dual.scenes import get_scene
+from fem_dual.solvers import CompiledSlab
+
+SCENES = ["curl3d", "curl2d", "curl2d-ufl", "curl2d-lifted", "curl3d-ufl"]
+
+
+def _forms_system(problem):
+    """(R, J) of the UFL forms assembled by DOLFINx and PETSc (dense, all dofs)."""
+    forms = CompiledSlab(problem)
+    b = fem_petsc.assemble_vector(forms.L)
+    A = fem_petsc.assemble_matrix(forms.a)
+    A.assemble()
+    R, J = b.array.copy(), A.convert("dense").getDenseArray().copy()
+    for obj in (b, A):
+        obj.destroy()
+    forms.close()
+    return R, J
+
+
+@pytest.mark.serial
+@pytest.mark.parametrize("scene", SCENES)
+@pytest.mark.parametrize("base", ["start", "predictor"])
+def test_residual_and_jacobian_equal_the_forms(scene, base):
+    """At a random dual state of a slab from a moving start: R and J agree with the forms'
+    to 1e-12 of their size (the same quadrature; only the order of the sums differs), and the
+    Hessian's zero pattern, found at random constants, drops no entry that is not zero."""
+    if base == "predictor" and scene != "curl3d":
+        pytest.skip("one predictor case suffices")
+    s = get_scene(scene)()
+    problem = SlabProblem(s, 3, 3, MPI.COMM_SELF, base)
+    local = LocalAction(problem)
+    n = s.n
+    problem.set_slab(np.linspace(0.3, 0.1, n), np.linspace(-0.2, 0.1, n), 0.7, 0.4)
+    rng = np.random.default_rng(1)
+    assert local.set_state(1e-3 * rng.standard_normal(local.size)) is None
+    R_forms, J_forms = _forms_system(problem)
+    free = local.free_global
+    R = local.residual()
+    J = local.dense_jacobian()
+    assert np.abs(R - R_forms[free]).max() <= 1e-12 * np.abs(R_forms).max()
+    assert np.abs(J - J_forms[np.ix_(free, free)]).max() <= 1e-12 * np.abs(J_forms).max()
+    assert len(R_forms) - len(free) == 2 * n  # xi(1) = eta(1) = 0 only
+    assert local.hessian_entries < (2 * local.bs) * (2 * local.bs + 1) // 2
+
+
+@pytest.mark.serial
+def test_momenta_equal_the_forms_recovery():
+    """The momenta at the cell ends from the pointwise residual equal CellMomenta's."""
+    from fem_dual.recovery import CellMomenta
+
+    problem = SlabProblem(get_scene("curl2d")(), 4, 3, MPI.COMM_SELF)
+    local = LocalAction(problem)
+    problem.set_slab(np.array([1.0, 0.9]), np.array([0.1, -0.2]), 0.5)
+    local.set_state(1e-3 * np.random.default_rng(2).standard_normal(local.size))
+    forms = CellMomenta(problem)
+    expected = forms()
+    forms.close()
+    assert np.abs(local.momenta() - expected).max() <= 1e-13 * np.abs(expected).max()
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("scene, slabs, rtol", [("curl3d", 3, None), ("curl2d", 4, None),
+                                                ("curl2d-lifted", 4, None),
+                                                ("curl3d", 1, 1e-8)])
+def test_pointwise_newton_gives_the_snes_answer(scene, slabs, rtol):
+    """The same slabs, iterations, vertex values (1e-12) and estimate (1e-6 relative: a
+    difference of close solutions, or round-off of the states) as the PETSc SNES on the
+    forms."""
+    kw = dict(T=2.0, cells=4, degree=4, reference="none")
+    kw.update(slabs=slabs) if rtol is None else kw.update(rtol=rtol)
+    a = run(RunConfig.create(scene, assembly="pointwise", **kw))
+    b = run(RunConfig.create(scene, assembly="forms", **kw))
+    assert a.solver["assembly"] == "pointwise" and a.solver["kind"] == "newton"
+    assert b.solver["assembly"] == "forms" and b.solver["kind"] == "snes"
+    assert a.slab_lengths == b.slab_lengths
+    assert a.solver["newton_iterations"] == b.solver["newton_iterations"]
+    scale = np.abs(b.x).max()
+    assert np.abs(a.x - b.x).max() <= 1e-12 * scale and np.abs(a.v - b.v).max() <= 1e-12 * scale
+    # (near 1e-11 the estimate is round-off of the states themselves)
+    assert abs(a.error_estimate - b.error_estimate) <= 1e-6 * b.error_estimate + 1e-12 * scale
+
+
+@pytest.mark.serial
+def test_auto_takes_the_forms_for_petsc_options():
+    """PETSc options ask for the SNES or KSP: auto takes the forms; assembly=pointwise refuses
+    them."""
+    r = run(RunConfig.create("curl3d", T=1.0, cells=4, degree=3, slabs=1, reference="none",
+                             petsc={"snes_rtol": "1e-12"}))
+    assert r.solver["assembly"] == "forms" and r.solver["kind"] == "snes"
+    r = run(RunConfig.create("curl3d", T=1.0, cells=4, degree=3, slabs=1, reference="none"))
+    assert r.solver["assembly"] == "pointwise"
+    with pytest.raises(InputError, match="assembly=pointwise uses no PETSc solver"):
+        RunConfig.create("curl3d", assembly="pointwise", petsc={"snes_rtol": "1e-12"})
+    r = run(RunConfig.create("ziegler", T=1.0, cells=4, degree=3, slabs=1, reference="none",
+                             petsc={"ksp_type": "preonly"}))
+    assert r.solver["assembly"] == "forms" and r.solver["kind"] == "ksp"
+    r = run(RunConfig.create("ziegler", T=1.0, cells=4, degree=3, slabs=1, reference="none"))
+    assert r.solver["assembly"] == "pointwise" and r.solver["kind"] == "direct"
+
+
+@pytest.mark.serial
+@pytest.mark.parametrize("scene, base", [("curl3d", "start"), ("curl2d", "start"),
+                                         ("curl2d-lifted", "start"), ("curl2d-ufl", "zero")])
+def test_exact_tangent_of_the_slab_map(scene, base):
+    """The exact tangent (vertex values' derivative in the start state) equals a
+    Richardson-extrapolated central difference of fresh slab solves to 1e-10 of its size (the
+    difference's own truncation error), where a single central difference with the step of
+    the forms path errs by 1e-8 .. 1e-5."""
+    from fem_dual.driver import Simulation
+
+    s = get_scene(scene)()
+    config = RunConfig.create(s, T=1.0, cells=4, degree=4, slabs=1, staging="off",
+                              reference="none", base=base)
+    sim = Simulation.for_config(config)
+    sim.begin(config)
+    z0 = np.concatenate([config.x0, config.v0]) + 0.05
+    values = sim.solve_slab(z0, 0.0, 0.7)
+    dz = np.random.default_rng(3).standard_normal(2 * s.n)
+    exact = sim.tangent(z0, dz, 0.0, 0.7, values)
+
+    def ends(z):
+        v = sim.solve_slab(z, 0.0, 0.7)
+        return np.hstack([v.x, v.v])
+
+    central = {h: (ends(z0 + h * dz) - ends(z0 - h * dz)) / (2 * h) for h in (1e-3, 5e-4)}
+    richardson = (4 * central[5e-4] - central[1e-3]) / 3
+    assert np.abs(exact - richardson).max() <= 1e-10 * np.abs(exact).max()
+    sim.close()
