@@ -462,12 +462,14 @@ def _orbit(args, params, comm) -> int:
         raise InputError(f"period={args.period!r} must be positive")
     if period < MIN_T:
         raise InputError(f"period={args.period!r} is too small (at least {MIN_T:g})")
+    from fem_dual.config import _whole_number
+
+    if _whole_number("degree", args.degree) > 8:  # (before a run's limits, which name slabs)
+        raise InputError(f"degree={args.degree} is too large for orbits (at most 8)")
+    if _whole_number("cells", args.cells) > 4096:
+        raise InputError(f"cells={args.cells} is too large for orbits (at most 4096)")
     config = RunConfig.create(args.scene, params, T=args.period, cells=args.cells,
                               degree=args.degree, x0=args.x0, v0=args.v0, check_petsc=False)
-    if config.degree > 8:
-        raise InputError(f"degree={config.degree} is too large for orbits (at most 8)")
-    if config.cells > 4096:
-        raise InputError(f"cells={config.cells} is too large for orbits (at most 4096)")
     from fem_dual.orbit_input import check_resolution
 
     check_resolution(config.scene, config.x0, config.v0, config.T, config.cells)

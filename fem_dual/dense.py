@@ -38,9 +38,11 @@ def rates(scene, x: np.ndarray, v: np.ndarray) -> Tuple[np.ndarray, ...]:
         j[i] = Minv @ (J @ vi)
         size = float(np.abs(vi).max())
         curvature = np.zeros_like(xi)
-        if size > 0:
-            eps = 1e-4 * max(1.0, float(np.abs(xi).max())) / size
-            curvature = (F(xi + eps * vi) - 2 * F(xi) + F(xi - eps * vi)) / eps ** 2
+        if size > 0:  # along the unit direction, then scaled: no overflow for |v| ~ 1e-300
+            h = 1e-4 * max(1.0, float(np.abs(xi).max()))
+            u = vi / size
+            with np.errstate(over="ignore", invalid="ignore"):  # (array products: inf, no raise)
+                curvature = size * (size * ((F(xi + h * u) - 2 * F(xi) + F(xi - h * u)) / h ** 2))
         snap[i] = Minv @ (curvature + J @ a[i])
     return a, j, snap
 

@@ -276,6 +276,98 @@ class _NumpyBackend(_Backend):
         return np.float64(self.values[name])
 
 
+class _Dual:
+    """A value with its gradient in the coordinates (forward-mode differentiation): the force's
+    Jacobian exactly, for the independent check of an orbit's multipliers, where differences
+    would share their truncation error with fem-dual's own."""
+
+    __array_ufunc__ = None  # numpy scalars defer to the operators below
+
+    def __init__(self, value, grad):
+        self.value, self.grad = np.float64(value), grad
+
+    @staticmethod
+    def parts(a):
+        return (a.value, a.grad) if isinstance(a, _Dual) else (np.float64(a), 0.0)
+
+    def __add__(self, other):
+        b, db = _Dual.parts(other)
+        return _Dual(self.value + b, self.grad + db)
+
+    __radd__ = __add__
+
+    def __sub__(self, other):
+        b, db = _Dual.parts(other)
+        return _Dual(self.value - b, self.grad - db)
+
+    def __rsub__(self, other):
+        b, db = _Dual.parts(other)
+        return _Dual(b - self.value, db - self.grad)
+
+    def __mul__(self, other):
+        b, db = _Dual.parts(other)
+        return _Dual(self.value * b, self.grad * b + self.value * db)
+
+    __rmul__ = __mul__
+
+    def __truediv__(self, other):
+        b, db = _Dual.parts(other)
+        return _Dual(self.value / b, (self.grad * b - self.value * db) / (b * b))
+
+    def __rtruediv__(self, other):
+        b, db = _Dual.parts(other)
+        return _Dual(b / self.value, (db * self.value - b * self.grad) / (self.value ** 2))
+
+    def __pow__(self, other):
+        b, db = _Dual.parts(other)
+        value = self.value ** b
+        grad = b * self.value ** (b - 1) * self.grad if b != 0 else 0.0 * self.grad
+        if isinstance(other, _Dual):  # a ** b = exp(b log a)
+            grad = grad + value * np.log(self.value) * db
+        return _Dual(value, grad)
+
+    def __rpow__(self, other):
+        a = np.float64(other)
+        value = a ** self.value
+        return _Dual(value, value * np.log(a) * self.grad)
+
+    def __neg__(self):
+        return _Dual(-self.value, -self.grad)
+
+    def __pos__(self):
+        return self
+
+
+def _chain(function, derivative):
+    """f on a _Dual by the chain rule, plain f on a number."""
+    def apply(a):
+        if not isinstance(a, _Dual):
+            return function(a)
+        return _Dual(function(a.value), derivative(a.value) * a.grad)
+    return apply
+
+
+_DUAL_FUNCTIONS = {
+    "sin": _chain(np.sin, np.cos), "cos": _chain(np.cos, lambda u: -np.sin(u)),
+    "tan": _chain(np.tan, lambda u: 1.0 / np.cos(u) ** 2), "exp": _chain(np.exp, np.exp),
+    "log": _chain(np.log, lambda u: 1.0 / u), "sqrt": _chain(np.sqrt, lambda u: 0.5 / np.sqrt(u)),
+    "sinh": _chain(np.sinh, np.cosh), "cosh": _chain(np.cosh, np.sinh),
+    "tanh": _chain(np.tanh, lambda u: 1.0 / np.cosh(u) ** 2),
+    "atan": _chain(np.arctan, lambda u: 1.0 / (1.0 + u * u)), "abs": _chain(np.abs, np.sign)}
+
+
+class _DualBackend(_NumpyBackend):
+    """Coordinates carry their unit gradients: every component comes with its row of the
+    Jacobian."""
+
+    functions = _DUAL_FUNCTIONS
+
+    def coordinate(self, index):
+        grad = np.zeros(len(self.x))
+        grad[index] = 1.0
+        return _Dual(self.x[index], grad)
+
+
 class _ConstantChecker(_Backend):
     """The parse-time check of the sub-expressions free of coordinates and parameters, folded
     in float64 (bounded work; never Python ints): each must be finite, no divisor may be zero
@@ -612,6 +704,23 @@ class ForceExpression:
         with np.errstate(all="ignore"):
             return np.array([_evaluate(node, backend) for node in self._components],
                             dtype=np.float64)
+
+    def jacobian(self, x, values: Mapping[str, float]) -> np.ndarray:
+        """dF/dx at a point `x` (n, n), exactly (forward-mode differentiation of the tree;
+        abs has the derivative sign). inf and nan are returned as they come."""
+        point = np.asarray(x, dtype=np.float64)
+        if point.shape != (self.n,):
+            raise ValueError(f"x has shape {point.shape}, expected ({self.n},)")
+        backend = _DualBackend(point, values)
+        with np.errstate(all="ignore"):
+            return np.array([_jacobian_row(_evaluate(node, backend), self.n)
+                             for node in self._components])
+
+
+def _jacobian_row(value, n: int) -> np.ndarray:
+    if isinstance(value, _Dual):
+        return np.broadcast_to(np.asarray(value.grad, dtype=np.float64), (n,)).copy()
+    return np.zeros(n)  # a component free of the coordinates
 
 
 def parse_force(text: str, known_parameters: Iterable[str] = ()) -> ForceExpression:

@@ -23,8 +23,10 @@ MULTIPLIER_TOL = 1e-6  # multipliers' estimate or check above this (relative): n
 
 
 def _rhs_and_jacobian(scene, length: float = 0.0):
-    """(f, J): z' = f(z) for the undamped scene's motion, and its Jacobian (fourth-order
-    central differences of size 1e-3 times `length`, the size of the motion, or of x)."""
+    """(f, J): z' = f(z) for the undamped scene's motion, and its Jacobian: exact where the
+    scene knows the force's (its own formula, or a force expression differentiated in forward
+    mode), else fourth-order central differences of size 1e-3 times `length`, the size of the
+    motion, or of x (their truncation error would be a check's error of its own)."""
     n = scene.n
     M = scene.mass_matrix()
     if scene.linear:
@@ -39,6 +41,12 @@ def _rhs_and_jacobian(scene, length: float = 0.0):
 
     def jac(z):
         x = z[:n]
+        exact = scene.force_jacobian_numpy(x)
+        if exact is not None:
+            A = np.zeros((2 * n, 2 * n))
+            A[:n, n:] = np.eye(n)
+            A[n:, :n] = Minv @ exact
+            return A
         DF = np.empty((n, n))
         for j in range(n):  # fourth-order central differences (exact for cubic forces)
             h = 1e-3 * (length if length > 0 else max(1.0, abs(x[j])))

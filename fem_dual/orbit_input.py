@@ -156,10 +156,21 @@ class Energy:
 MAX_RADIANS_PER_CELL = 8.0  # a guess that turns faster than this per cell cannot be resolved
 
 
+STATE_RANGE = (1e-150, 1e150)  # |x0|, |v0| an orbit's action can hold (it squares them)
+
+
 def check_resolution(scene, x0: np.ndarray, v0: np.ndarray, T0: float, cells: int) -> None:
-    """InputError when the guess turns more than MAX_RADIANS_PER_CELL per cell at its start
-    rate (its motion could not be resolved, and the guess run alone would take that long)."""
+    """InputError when the start state is beyond STATE_RANGE, or when the guess turns more than
+    MAX_RADIANS_PER_CELL per cell at its start rate (its motion could not be resolved, and the
+    guess run alone would take that long)."""
     from fem_dual.stepper import motion_rate
+
+    size = float(np.abs(np.concatenate([x0, v0])).max())
+    if size > 0 and not STATE_RANGE[0] <= size <= STATE_RANGE[1]:
+        raise InputError(f"x0={','.join(map(repr, map(float, x0)))}, v0="
+                         f"{','.join(map(repr, map(float, v0)))}: a start of size {size:.3g} is "
+                         f"beyond {STATE_RANGE[0]:g} .. {STATE_RANGE[1]:g}, where the action's "
+                         "squares of the state stay in double precision; rescale the coordinates")
 
     if scene.linear:
         from fem_dual.scenes.linear import first_order_matrix

@@ -49,6 +49,10 @@ class ForceScene(Scene):
         F = self.forms.force(np.asarray(x, dtype=float), c)
         return np.array([F[i]((0.0,)) for i in range(self.n)])
 
+    def force_jacobian_numpy(self, x: np.ndarray) -> Optional[np.ndarray]:
+        """dF/dx at x exactly where the scene knows it (None: not known; callers difference)."""
+        return None
+
     def reference(self, x0, v0):
         from fem_dual.reference import IVPFlow
 
@@ -101,6 +105,10 @@ class Curl3D(ForceScene):
     def force_numpy(self, x):
         return -self.spring() @ x - np.array([x[1] * x[2], 2 * x[0] * x[2], x[0] * x[1]])
 
+    def force_jacobian_numpy(self, x):
+        return -self.spring() - np.array([[0.0, x[2], x[1]], [2 * x[2], 0.0, 2 * x[0]],
+                                          [x[1], x[0], 0.0]])
+
 
 @dataclasses.dataclass(frozen=True)
 class Curl2D(ForceScene):
@@ -118,6 +126,9 @@ class Curl2D(ForceScene):
 
     def force_numpy(self, x):
         return -self.k * np.array([x[0] * x[1] ** 2, x[0] ** 3])
+
+    def force_jacobian_numpy(self, x):
+        return -self.k * np.array([[x[1] ** 2, 2 * x[0] * x[1]], [3 * x[0] ** 2, 0.0]])
 
 
 # User-defined forces: only F and H are written; G and DF come from UFL (forms.implicit).

@@ -123,6 +123,10 @@ class ExpressionForce(ForceScene):
         values = dict(self.values, m=self.m, alpha=self.alpha, beta=self.beta)
         return self.expression.numpy(np.asarray(x, dtype=float), values)
 
+    def force_jacobian_numpy(self, x: np.ndarray) -> np.ndarray:
+        values = dict(self.values, m=self.m, alpha=self.alpha, beta=self.beta)
+        return self.expression.jacobian(np.asarray(x, dtype=float), values)
+
     def parameters(self) -> Dict[str, object]:
         return {"F": self.F, "m": self.m, "alpha": self.alpha, "beta": self.beta,
                 **dict(self.values)}
