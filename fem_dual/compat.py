@@ -88,6 +88,7 @@ class CellPointEvaluator:
         self._points = np.asarray(ref_points, dtype=np.float64).reshape(-1, 1)
         self._expr = fem.Expression(expr, self._points)
         self.value_size = self._expr.value_size
+        self.expression = expr
 
     def __call__(self, cells: np.ndarray) -> np.ndarray:
         values = self._expr.eval(np.asarray(cells, dtype=np.int32))

@@ -711,14 +711,14 @@ def _recurrence(sim: Simulation, state: _LoopState, dt: float,
     phi, lend = sim.slab_maps(dt)
     Z = np.empty((count + 1, len(state.z)))
     Z[0] = state.z
-    for j in range(count):  # (into the rows: no temporaries, a third of the loop's time)
-        np.dot(phi, Z[j], out=Z[j + 1])
+    for j in range(count):  # (the ufunc into the rows: no temporaries, no dispatch)
+        np.matmul(phi, Z[j], out=Z[j + 1])
     lost = sim.unresolved(Z[:-1], dt)
     carried = Z[:-1] @ lend.T + (0.0 if lost is None else lost)
     D = np.empty_like(Z)
     D[0] = state.d
     for j in range(count):
-        np.dot(phi, D[j], out=D[j + 1])
+        np.matmul(phi, D[j], out=D[j + 1])
         D[j + 1] += carried[j]
     return Z, D, lost
 
@@ -774,7 +774,7 @@ def _judge_chunk(config: RunConfig, state: _LoopState, schedule: SlabSchedule,
     if done:
         batch = SlabBatch(state.k, t0s[:done], np.full(done, dt), _slice(vals, done),
                           est.local[:done], est.glob[:done], est.err_local[:done],
-                          est.err_global[:done], est.floor[:done], np.array(states),
+                          est.err_global[:done], est.floor[:done], states,
                           est.scales[:done])
         weights.scale_x, weights.scale_v = est.scales[done - 1]
     return (done, trial.state), Z[done], D[done], batch

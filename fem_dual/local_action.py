@@ -125,14 +125,19 @@ class LocalAction:
 
         # the gradient of the density in Z = (U, U_s) (derivative k of component c at k bs + c),
         # and the Hessian's upper triangle, of which only the entries that are not zero
-        # whatever the state and the constants are compiled (a third for curl3d)
+        # whatever the state and the constants enter the contraction (half for curl3d; all are
+        # compiled: a second expression of the nonzero ones alone cost as much to evaluate)
         U, Us = p.U, p.Us
         grad = [ufl.diff(p.density, U), ufl.diff(p.density, Us)]
         flat_grad = [g[c] for g in grad for c in range(bs)]
         hess = {(k, l): ufl.diff(grad[k], V) for k in range(2) for l, V in enumerate((U, Us))}
         upper = [(K, L) for K in range(2 * bs) for L in range(K, 2 * bs)]
         entry = {(K, L): hess[K // bs, L // bs][K % bs, L % bs] for K, L in upper}
-        pairs = self._pattern(entry, points)
+        self._both = CellPointEvaluator(ufl.as_vector(flat_grad + [entry[kl] for kl in upper]),
+                                        points)
+        self._out_both = np.zeros((cell_count, nq * (2 * bs + len(upper))))
+        pairs = self._pattern(upper)
+        self._hess_cols = 2 * bs + np.array([upper.index(kl) for kl in pairs], dtype=np.int64)
         self._points, self._flat_grad, self.pairs = points, flat_grad, pairs
         # d grad / d zbar for the exact tangents, compiled now (with the rest: under MPI every
         # rank holds the slab, and rank 0 compiles first, see fem_dual.driver.Simulation)
@@ -142,11 +147,8 @@ class LocalAction:
             self._base_derivative = CellPointEvaluator(
                 ufl.as_vector([G[i, j] for i in range(2 * bs) for j in range(2 * p.n)]), points)
         self._grad = CellPointEvaluator(ufl.as_vector(flat_grad), points)
-        self._both = CellPointEvaluator(ufl.as_vector(flat_grad + [entry[kl] for kl in pairs]),
-                                        points)
         self._initial = CellPointEvaluator(ufl.diff(p.initial, U), np.zeros(1))
         self._out_grad = np.zeros((cell_count, nq * 2 * bs))
-        self._out_both = np.zeros((cell_count, nq * (2 * bs + len(pairs))))
         self.hessian_entries = len(pairs)
 
         # basis values and derivatives d/ds at the points of every cell: (cells, q, 2, nd)
@@ -175,7 +177,7 @@ class LocalAction:
             if members != list(range(members[0], members[-1] + 1)):
                 raise RuntimeError("the Hessian pairs of a group are not contiguous")
             P = np.einsum("eqa,eqb->eabq", Tw[:, :, k], T[:, :, l])
-            self._groups.append((2 * bs + members[0], 2 * bs + members[-1] + 1,
+            self._groups.append((members[0], members[-1] + 1,
                                  np.ascontiguousarray(P.reshape(cell_count, nd * nd, nq))))
 
         # unknowns in time order, without the Dirichlet values at s = 1
@@ -236,18 +238,16 @@ class LocalAction:
         self._both_at: Optional[Tuple[int, np.ndarray]] = None  # state of the last evaluation
         self._tangent_at: Optional[tuple] = None  # (state, LU, Hessian, d grad / d zbar)
 
-    def _pattern(self, entry, points) -> list:
-        """The Hessian pairs (K, L), K <= L, whose entries are not zero at random dual states,
+    def _pattern(self, upper: list) -> list:
+        """The Hessian pairs (K, L) of `upper` whose entries are not zero at random dual states,
         constants and coefficients (zero there: zero whatever they are), ordered by the
         derivative parts (K // bs, L // bs)."""
-        keys = list(entry)
-        expr = ufl.as_vector([entry[key] for key in keys])
-        probe = CellPointEvaluator(expr, points)
-        nonzero = np.zeros(len(keys), dtype=bool)
-        for values in _randomised(expr, lambda: probe(self.cells)):
-            nonzero |= (values != 0).reshape(-1, len(keys)).any(axis=0)  # NaN counts as nonzero
-        bs = self.bs
-        return sorted((key for key, nz in zip(keys, nonzero) if nz),
+        bs, m = self.bs, len(upper)
+        nonzero = np.zeros(m, dtype=bool)
+        for values in _randomised(self._both.expression,
+                                  lambda: self._both(self.cells)[..., 2 * bs:]):
+            nonzero |= (values != 0).reshape(-1, m).any(axis=0)  # NaN counts as nonzero
+        return sorted((key for key, nz in zip(upper, nonzero) if nz),
                       key=lambda KL: (KL[0] // bs, KL[1] // bs, KL))
 
     # -- the state --------------------------------------------------------------------------
@@ -309,7 +309,7 @@ class LocalAction:
         cells, nq, bs = len(self.cells), self.nq, self.bs
         out = out.reshape(cells, nq, -1)
         R = self._residual(np.ascontiguousarray(out[..., :2 * bs]))
-        B = self._blocks(out)
+        B = self._blocks(out[..., self._hess_cols])
         band = np.bincount(self._j_flat, B.ravel()[self._j_source],
                            minlength=self._band_rows * self.size)
         return R, band.reshape(self._band_rows, self.size)
@@ -347,8 +347,8 @@ class LocalAction:
         H = np.zeros(out.shape[:2] + (m, m))
         K = np.array([k for k, _ in self.pairs])
         L = np.array([l for _, l in self.pairs])
-        H[..., K, L] = out[..., m:]
-        H[..., L, K] = out[..., m:]
+        H[..., K, L] = out[..., self._hess_cols]
+        H[..., L, K] = out[..., self._hess_cols]
         return H
 
     @_quiet
@@ -372,7 +372,8 @@ class LocalAction:
                 _, band = self.residual_and_jacobian()
                 out = self._out_both.reshape(cells, nq, -1)
             else:
-                band = np.bincount(self._j_flat, self._blocks(out).ravel()[self._j_source],
+                band = np.bincount(self._j_flat,
+                                   self._blocks(out[..., self._hess_cols]).ravel()[self._j_source],
                                    minlength=self._band_rows * self.size).reshape(
                     self._band_rows, self.size)
             Gz = self._base_derivative(self.cells).reshape(cells, nq, 2 * bs, 2 * n)
@@ -401,9 +402,10 @@ class LocalAction:
         np.add.at(vertices, self._vertex, one_sided)
         return vertices, lu
 
-    def _blocks(self, out: np.ndarray) -> np.ndarray:
+    def _blocks(self, H: np.ndarray) -> np.ndarray:
+        """B[e, (a, b), pair] from the nonzero Hessian entries H (cells, q, pairs)."""
         cells = len(self.cells)
-        blocks = [np.matmul(P, out[..., lo:hi]) for lo, hi, P in self._groups]
+        blocks = [np.matmul(P, H[..., lo:hi]) for lo, hi, P in self._groups]
         return np.concatenate([b.reshape(cells, -1, b.shape[-1]) for b in blocks], axis=-1)
 
     def dense_jacobian(self) -> np.ndarray:

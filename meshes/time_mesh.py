@@ -131,9 +131,10 @@ class SlabSchedule:
             length //= 2
         self.length = length
 
-    def accept_run(self, factors) -> list:
+    def accept_run(self, factors) -> np.ndarray:
         """`accept` slab after slab with the step factors `factors`, stopping after the first
-        slab whose factor changes the length; returns the state after each accepted slab.
+        slab whose factor changes the length; returns the state after each accepted slab
+        ((slabs, STATE_SIZE) integers).
         Vectorised where no rejected length is remembered (a chunk of hundreds of equal slabs
         of a linear scene took a millisecond slab by slab); the same states as `accept`."""
         factors = np.asarray(factors, dtype=float)
@@ -145,7 +146,7 @@ class SlabSchedule:
                 states.append(self.state)
                 if self.length != length:
                     break
-            return states
+            return np.array(states, dtype=np.int64).reshape(-1, self.STATE_SIZE)
         k = np.arange(1, len(factors) + 1)
         length = self.length
         pos = np.minimum(self.pos + k * length, self.total)  # (the last slab may be short)
@@ -158,8 +159,10 @@ class SlabSchedule:
         changed = np.flatnonzero(candidate != length)
         count = int(changed[0]) + 1 if len(changed) else len(factors)
         self.pos, self.length = int(pos[count - 1]), int(candidate[count - 1])
-        return [(int(pos[j]), int(candidate[j]), 0, self.wait, self.patience)
-                for j in range(count)]
+        states = np.empty((count, self.STATE_SIZE), dtype=np.int64)
+        states[:, 0], states[:, 1] = pos[:count], candidate[:count]
+        states[:, 2:] = (0, self.wait, self.patience)
+        return states
 
     def halve(self, factor: float = 0.5) -> bool:
         """Shorten the current slab to at most `factor` (at most 1/2) of its length; False when
