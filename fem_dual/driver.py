@@ -247,6 +247,7 @@ class Simulation:
         self.superposition = None
         self.tangent_solves = 0
         self._maps: Dict[float, Tuple[np.ndarray, np.ndarray]] = {}
+        self._pairs: Dict[float, np.ndarray] = {}
 
     def close(self) -> None:
         """Destroy the PETSc objects of the solver, the sampler, the problem and the companion;
@@ -314,6 +315,7 @@ class Simulation:
         self.superposition = None
         self.tangent_solves = 0
         self._maps = {}
+        self._pairs = {}
         if self.uses_superposition(config):
             if self.kronecker:  # H_d from the fields
                 self.superposition = KroneckerSuperposition(self.problem, self.solver,
@@ -392,6 +394,18 @@ class Simulation:
             phi, phi_c = ends
             self._maps[dt] = (phi, None if phi is None else ESTIMATE_SAFETY * (phi_c - phi))
         return self._maps[dt]
+
+    def pair_map(self, dt: float) -> np.ndarray:
+        """[[Phi, 0], [L, Phi]]: the start state z and its estimated error d of a slab of length
+        dt to the next slab's (rank 0; see slab_maps)."""
+        if dt not in self._pairs:
+            phi, lend = self.slab_maps(dt)
+            m = len(phi)
+            step = np.zeros((2 * m, 2 * m))
+            step[:m, :m] = step[m:, m:] = phi
+            step[m:, :m] = lend
+            self._pairs[dt] = step
+        return self._pairs[dt]
 
     def tangent(self, z0: np.ndarray, dz: np.ndarray, t0: float, dt: float,
                 values: Optional[VertexValues], central: bool = False,
@@ -672,7 +686,9 @@ class _LoopState:
         self.d = np.zeros_like(self.z)  # estimated global error of the state at the slab start
         self.lengths: List[float] = []
         self.batched = 0  # slabs taken in chunks from their slab maps (_batch_step)
-        self.chunk = FIRST_CHUNK  # slabs of the next chunk (before the limits of _batch_step)
+        # slabs of the next chunk (before the limits of _batch_step): fixed slabs have their
+        # length from the start, a controller finds its length first
+        self.chunk = CHUNK_SLABS if config.rtol is None else FIRST_CHUNK
         # whether the slab length has settled (the last slab kept it): while the controller
         # still shortens, grows and retries, chunks that stop after one slab would cost more
         # than the slab loop
@@ -709,12 +725,20 @@ def _recurrence(sim: Simulation, state: _LoopState, dt: float,
     slabs of length dt, slab by slab (as a resumed run repeats them), and the part of each
     start state the zero base damps (`Simulation.unresolved`)."""
     phi, lend = sim.slab_maps(dt)
-    Z = np.empty((count + 1, len(state.z)))
+    m = len(state.z)
+    if sim.unresolved(state.z[None], dt) is None:  # (z, d) together: one product a slab
+        step = sim.pair_map(dt)
+        Y = np.empty((count + 1, 2 * m))
+        Y[0, :m], Y[0, m:] = state.z, state.d
+        for j in range(count):  # (the ufunc into the rows: no temporaries, no dispatch)
+            np.matmul(step, Y[j], out=Y[j + 1])
+        return Y[:, :m], Y[:, m:], None
+    Z = np.empty((count + 1, m))
     Z[0] = state.z
-    for j in range(count):  # (the ufunc into the rows: no temporaries, no dispatch)
+    for j in range(count):
         np.matmul(phi, Z[j], out=Z[j + 1])
     lost = sim.unresolved(Z[:-1], dt)
-    carried = Z[:-1] @ lend.T + (0.0 if lost is None else lost)
+    carried = Z[:-1] @ lend.T + lost
     D = np.empty_like(Z)
     D[0] = state.d
     for j in range(count):
