@@ -131,6 +131,17 @@ class SlabSchedule:
             length //= 2
         self.length = length
 
+    def accept_each(self, factors) -> np.ndarray:
+        """`accept_run` slab by slab (its states; what the vectorised path must equal)."""
+        states = []
+        for factor in factors:
+            length = self.length
+            self.accept(float(factor))
+            states.append(self.state)
+            if self.length != length:
+                break
+        return np.array(states, dtype=np.int64).reshape(-1, self.STATE_SIZE)
+
     def accept_run(self, factors) -> np.ndarray:
         """`accept` slab after slab with the step factors `factors`, stopping after the first
         slab whose factor changes the length; returns the state after each accepted slab
@@ -139,14 +150,7 @@ class SlabSchedule:
         of a linear scene took a millisecond slab by slab); the same states as `accept`."""
         factors = np.asarray(factors, dtype=float)
         if self.ceiling or not len(factors):
-            states = []
-            for factor in factors:
-                length = self.length
-                self.accept(float(factor))
-                states.append(self.state)
-                if self.length != length:
-                    break
-            return np.array(states, dtype=np.int64).reshape(-1, self.STATE_SIZE)
+            return self.accept_each(factors)
         k = np.arange(1, len(factors) + 1)
         length = self.length
         pos = np.minimum(self.pos + k * length, self.total)  # (the last slab may be short)
