@@ -21,7 +21,6 @@ import scipy.linalg as sla
 from mpi4py import MPI
 
 from fem_dual.config import _scene
-from fem_dual.mpi import print0
 from fem_dual.orbit import orbit_family
 
 comm = MPI.COMM_WORLD

@@ -14,13 +14,17 @@ import os
 import signal
 import sys
 from contextlib import contextmanager
-from typing import Any, Dict, Iterator, List, Optional, Sequence
+from typing import TYPE_CHECKING, Any, Dict, Iterator, List, Optional, Sequence
 
 from fem_dual import faults
 from fem_dual.errors import InputError, SolveError
 
 # What answers without DOLFINx, PETSc or MPI (--help, --version, bad options): only the modules
 # above load at start; a command imports what it needs.
+if TYPE_CHECKING:  # annotations only
+    from mpi4py import MPI
+
+    from fem_dual.driver import RunResult
 
 __all__ = ["main", "build_parser"]
 

@@ -56,13 +56,13 @@ from fem_dual.errors import InputError, SolveError
 from fem_dual.floquet import (FLOW_MAX_CELLS, FLOW_START_CELLS, FLOW_TARGET, MAX_FOLD,
                               MULTIPLIER_TOL, SlabFlow, floquet_multipliers, monodromy,
                               multiplier_distance, stop_if_asked, vector_field)
-from fem_dual.orbit_input import (MODES, Energy, check_resolution, energy_matrices,  # noqa: F401
-                                parse_continuation, parse_mode)
+from fem_dual.orbit_input import MODES, Energy, parse_mode
 from fem_dual.problem import SlabProblem
 from fem_dual.recovery import CellMomenta
 from meshes import slab_mesh
 
-__all__ = ["OrbitProblem", "OrbitResult", "solve_orbit", "MODES", "parse_mode"]
+__all__ = ["OrbitProblem", "OrbitResult", "OrbitSolver", "Orbits", "orbit_family",
+           "orbit_summary", "write_orbit_files", "plot_orbit", "Energy", "MODES", "parse_mode"]
 
 NEWTON_MAX_IT = 30
 BASE_RESTARTS = 4  # a failed Newton starts again on its last iterate's image, at most this often
@@ -285,7 +285,7 @@ class OrbitSolver:
 
     def solve(self, mode: str) -> Dict[str, Any]:
         """Newton from the current state; returns its history. Raises SolveError."""
-        p, P = self.p, self.p._periodic
+        p = self.p
         steps: List[float] = []
         residuals: List[float] = []
         self._update_dtp()

@@ -21,7 +21,6 @@ cell is owned by exactly one rank, so every vertex gets exactly its incident cel
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np

@@ -8,7 +8,6 @@ import sys, json
 import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 from mpi4py import MPI
-import fem_dual.scenes.linear as lin
 from fem_dual.reference import LinearFlow
 from scipy.linalg import expm
 
