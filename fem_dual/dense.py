@@ -17,7 +17,12 @@ import numpy as np
 
 from fem_dual.base_state import force_jacobian
 
-__all__ = ["rates", "hermite_at", "hermite_estimate"]
+__all__ = ["rates", "hermite_at", "hermite_estimate", "slab_interpolation_gaps",
+           "GAP_ORDER"]
+
+GAP_ORDER = 8  # the interpolation error estimate is O(h^8), as the error of H7
+GAP_SAFETY = 2.0  # on the contraction of successive Hermites (see _interpolate)
+GAP_POINTS = (0.25, 0.5, 0.75)  # where within each vertex interval a slab's gap is measured
 
 
 def rates(scene, x: np.ndarray, v: np.ndarray) -> Tuple[np.ndarray, ...]:
@@ -59,7 +64,7 @@ def _hermite_basis(m: int) -> np.ndarray:
     return np.linalg.inv(A)
 
 
-_BASES = {m: _hermite_basis(m) for m in (3, 4)}  # degrees 5 and 7
+_BASES = {m: _hermite_basis(m) for m in (2, 3, 4)}  # degrees 3, 5 and 7
 
 
 def _hermite(s: np.ndarray, h: np.ndarray, left, right) -> np.ndarray:
@@ -80,10 +85,60 @@ def hermite_at(scene, t: np.ndarray, x: np.ndarray, v: np.ndarray,
 
 def hermite_estimate(scene, t: np.ndarray, x: np.ndarray, v: np.ndarray,
                      times: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(x, v, interpolation error estimate) at `times`: the estimate is the distance to the
-    Hermite of degree 5 (one derivative fewer at each end), an upper estimate of the degree-7
-    error, which matters where the vertices are more accurate than O(h^8) (p >= 5)."""
+    """(x, v, interpolation error estimate) at `times`: the distance to the Hermite of degree 5
+    (one derivative fewer at each end) scaled by the contraction of the successive Hermites
+    (`_interpolate`), an estimate of the degree-7 error, which matters where the vertices are
+    more accurate than O(h^8) (p >= 5)."""
     return _dense(scene, t, x, v, times, estimate=True)
+
+
+def slab_interpolation_gaps(scene, s: np.ndarray, dt, x: np.ndarray,
+                            v: np.ndarray) -> np.ndarray:
+    """The interpolation error estimate of `hermite_estimate` between the vertices of slabs
+    (x, v: (slabs, vertices, n) at the points s of [0, 1]; length dt each, or (slabs,)) at
+    GAP_POINTS of every vertex interval, for x and v apart: (slabs, 2), the max over each slab.
+    What an output time between vertices adds to the vertex error (the slab loop judges it
+    when output times are asked for)."""
+    slabs, vertices, n = x.shape
+    if vertices < 2 or slabs == 0:
+        return np.zeros((slabs, 2))
+    dts = np.broadcast_to(np.asarray(dt, dtype=float), (slabs,))
+    a, j, snap = (r.reshape(slabs, vertices, n)
+                  for r in rates(scene, x.reshape(-1, n), v.reshape(-1, n)))
+    h = (dts[:, None] * np.diff(np.asarray(s, dtype=float))[None, :]).ravel()  # (slabs * cells)
+    lo, hi = (slice(None), slice(None, -1)), (slice(None), slice(1, None))
+    left = [q[lo].reshape(-1, n) for q in (x, v, a, j, snap)]
+    right = [q[hi].reshape(-1, n) for q in (x, v, a, j, snap)]
+    gaps = np.zeros((slabs, 2))
+    for f in GAP_POINTS:
+        _, _, gap_x, gap_v = _interpolate(np.full(len(h), f), h, left, right, estimate=True)
+        gaps = np.maximum(gaps, np.column_stack([gap_x.reshape(slabs, -1).max(axis=1),
+                                                 gap_v.reshape(slabs, -1).max(axis=1)]))
+    return gaps
+
+
+def _interpolate(s, h, left, right, estimate: bool):
+    """x and v at the points s of intervals of length h from the vertex data left, right
+    ([x, v, a, j, snap] rows at each end), and with `estimate` the interpolation error estimate
+    of each (rows,): |H7 - H5| times the observed contraction |H7 - H5| / |H5 - H3| of the
+    successive Hermites (with GAP_SAFETY, at most 1). Where the interpolation converges
+    (a contraction below 1) the error of H7 is about 0.5 times the contraction times |H7 - H5|
+    (Hermite remainders of a harmonic motion, whose ratio is 30/56 at every s); where it does
+    not, |H7 - H5| itself."""
+    xs = _hermite(s, h, left[:4], right[:4])
+    vs = _hermite(s, h, left[1:5], right[1:5])
+    if not estimate:
+        return xs, vs, None, None
+    gaps = []
+    for start, top in ((0, xs), (1, vs)):
+        h5 = _hermite(s, h, left[start:start + 3], right[start:start + 3])
+        h3 = _hermite(s, h, left[start:start + 2], right[start:start + 2])
+        d7 = np.abs(top - h5).max(axis=1)
+        d5 = np.abs(h5 - h3).max(axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            contraction = np.where(d5 > 0, d7 / np.where(d5 > 0, d5, 1.0), np.inf)
+        gaps.append(d7 * np.minimum(1.0, GAP_SAFETY * contraction))
+    return xs, vs, gaps[0], gaps[1]
 
 
 def _dense(scene, t, x, v, times, estimate: bool = False):
@@ -94,11 +149,7 @@ def _dense(scene, t, x, v, times, estimate: bool = False):
     ends = np.unique(np.concatenate([k, k + 1]))
     a, j, snap = (np.empty_like(x) for _ in range(3))
     a[ends], j[ends], snap[ends] = rates(scene, x[ends], v[ends])
-    xs = _hermite(s, h, (x[k], v[k], a[k], j[k]), (x[k + 1], v[k + 1], a[k + 1], j[k + 1]))
-    vs = _hermite(s, h, (v[k], a[k], j[k], snap[k]),
-                  (v[k + 1], a[k + 1], j[k + 1], snap[k + 1]))
-    if not estimate:
-        return xs, vs, None
-    x5 = _hermite(s, h, (x[k], v[k], a[k]), (x[k + 1], v[k + 1], a[k + 1]))
-    v5 = _hermite(s, h, (v[k], a[k], j[k]), (v[k + 1], a[k + 1], j[k + 1]))
-    return xs, vs, np.maximum(np.abs(xs - x5).max(axis=1), np.abs(vs - v5).max(axis=1))
+    data = (x, v, a, j, snap)
+    xs, vs, gap_x, gap_v = _interpolate(s, h, [q[k] for q in data], [q[k + 1] for q in data],
+                                        estimate)
+    return xs, vs, None if gap_x is None else np.maximum(gap_x, gap_v)

@@ -22,7 +22,7 @@ from mpi4py import MPI
 
 from fem_dual.compat import quiet_jit_logging
 from fem_dual.config import STAGING_LIMIT, RunConfig
-from fem_dual.dense import hermite_at, hermite_estimate
+from fem_dual.dense import GAP_ORDER, hermite_at, hermite_estimate, slab_interpolation_gaps
 from fem_dual.errors import InputError, SolveError
 from fem_dual.modal import ModalBasis
 from fem_dual.kronecker import (KroneckerProblem, KroneckerSampler, KroneckerSolver,
@@ -551,6 +551,7 @@ class _Estimates:
     floor: np.ndarray  # (slabs, 2): round-off floor of x and v errors
     err_local: np.ndarray  # weighted local error per unit of time (the controller's)
     err_global: np.ndarray
+    err_output: Optional[np.ndarray] = None  # weighted interpolation error between vertices
 
     def slab(self, j: int, t0: float, dt: float) -> SlabEstimate:
         return SlabEstimate(t0, dt, self.local[j], self.glob[j], float(self.err_local[j]),
@@ -559,9 +560,13 @@ class _Estimates:
 
 def _estimates(vals: VertexValues, companion: VertexValues, algebraic: Optional[np.ndarray],
                psi: Optional[np.ndarray], lost: Optional[np.ndarray], weights: ErrorWeights,
-               dt, T: float) -> _Estimates:
+               dt, T: float, output: Optional[Tuple[Any, int]] = None) -> _Estimates:
     """The estimates of consecutive slabs (values with a leading slab axis; lost (slabs, 2n)),
-    each slab's motion recorded in the weights before the next."""
+    each slab's motion recorded in the weights before the next. With `output` (the scene and
+    the order 2p of the vertex values), times between the vertices are asked for: the
+    interpolation error there (`slab_interpolation_gaps`) must be within the tolerance too, and
+    enters the controller's error at the vertices' order (a slab whose gap exceeds it is
+    retried shorter, as one whose local error does)."""
     n = vals.x.shape[-1]
     local = np.concatenate([companion.x - vals.x, companion.v - vals.v], axis=-1)
     if algebraic is not None:  # the answer's own Newton error (the companion's cancels it)
@@ -580,7 +585,14 @@ def _estimates(vals: VertexValues, companion: VertexValues, algebraic: Optional[
     with np.errstate(invalid="ignore", over="ignore"):
         err_local = weights.norms(above, scales) / (np.asarray(dt) / T)
         err_global = weights.norms(glob, scales)
-    return _Estimates(local, glob, scales, floor, err_local, err_global)
+        err_output = None
+        if output is not None:
+            scene, order = output
+            gaps = np.maximum(slab_interpolation_gaps(scene, vals.s, dt, vals.x, vals.v) - floor,
+                              0.0)
+            err_output = weights.norms(np.repeat(gaps, n, axis=1)[:, None, :], scales)
+            err_local = np.maximum(err_local, err_output ** (order / GAP_ORDER))
+    return _Estimates(local, glob, scales, floor, err_local, err_global, err_output)
 
 
 def _batched(values: VertexValues) -> VertexValues:
@@ -588,11 +600,17 @@ def _batched(values: VertexValues) -> VertexValues:
     return values.apply(lambda a: a[None])
 
 
+def _output(config: RunConfig) -> Optional[Tuple[Any, int]]:
+    """What `_estimates` needs to judge the times between vertices, when they are asked for."""
+    return None if config.t_eval is None else (config.scene, 2 * config.degree)
+
+
 def _judge(vals: VertexValues, companion: VertexValues, algebraic: Optional[np.ndarray],
            psi: Optional[np.ndarray], lost: Optional[np.ndarray], weights: ErrorWeights,
            bound: Optional[GrowthBound],
-           t0: float, dt: float,
-           T: float) -> Tuple[str, Optional[float], str, Optional[SlabEstimate]]:
+           t0: float, dt: float, T: float,
+           output: Optional[Tuple[Any, int]] = None
+           ) -> Tuple[str, Optional[float], str, Optional[SlabEstimate]]:
     """(action, weighted local error, reason, estimate) for a solved slab on rank 0: "accept",
     "retry" (shorter) or "refuse" (the run cannot vouch for its answer any more)."""
     if not vals.finite():
@@ -607,7 +625,7 @@ def _judge(vals: VertexValues, companion: VertexValues, algebraic: Optional[np.n
                                "slab"), None
     one = (lambda a: None if a is None else a[None])
     est = _estimates(_batched(vals), _batched(companion), one(algebraic), one(psi), one(lost),
-                     weights, dt, T)
+                     weights, dt, T, output)
     local, glob = est.local[0], est.glob[0]
     if not (np.isfinite(local).all() and np.isfinite(glob).all()):
         return "retry", None, "the error estimate is not finite", None
@@ -616,6 +634,10 @@ def _judge(vals: VertexValues, companion: VertexValues, algebraic: Optional[np.n
     tol = weights.tol
     what = f"rtol={tol.rtol:g}, atol={tol.atol:g}" if tol.adaptive else \
         f"{tol.rtol:g} of the motion's scale"
+    if est.err_output is not None and est.err_output[0] > 1.0:
+        return "retry", err_local, (f"the state between output vertices is estimated to be "
+                                    f"{est.err_output[0]:.3g} times the tolerance ({what}) off: "
+                                    "the vertices are too far apart for --t-eval"), slab
     if err_local > 1.0:
         return "retry", err_local, (f"estimated local error {np.abs(local).max():.3g} exceeds "
                                     f"its share of the tolerance ({what})"), slab
@@ -780,7 +802,8 @@ def _judge_chunk(config: RunConfig, state: _LoopState, schedule: SlabSchedule,
     accepted slabs, the state (z, d) after them and the accepted slabs (None: none)."""
     count = len(Z) - 1
     t0, dt = schedule.current()
-    est = _estimates(vals, companion, None, psi, lost, weights, dt, config.T)
+    est = _estimates(vals, companion, None, psi, lost, weights, dt, config.T,
+                     _output(config))
     est.glob[:, -1] = D[1:]
     t0s = (schedule.pos + schedule.length * np.arange(count)) * schedule.T / schedule.total
     ok = (_finite(vals) & np.isfinite(est.local).reshape(count, -1).all(axis=1)
@@ -986,7 +1009,8 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool,
             companion = sim.companion.solve_slab(z, t0, dt, start=sim)
             timings["estimate_s"] += time.perf_counter() - t2
             verdict, problem = _on_root(comm, lambda: _judge(
-                vals, companion, algebraic, psi, lost, weights, bound, t0, dt, config.T))
+                vals, companion, algebraic, psi, lost, weights, bound, t0, dt, config.T,
+                _output(config)))
             shared = (("error", None, problem) if problem else verdict[:3]) if root else None
             action, err, reason = bcast(comm, shared)
         except SolveError as exc:
@@ -1098,10 +1122,31 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool,
     result.scene_object = config.scene
     if config.t_eval is not None:
         result.t_eval = _dense_output(result, config)
+        if failure is None:
+            failure = _unvouched_output(result, config)
     if failure is not None:
         failure.partial = result
         raise failure
     return result
+
+
+def _unvouched_output(result: RunResult, config: RunConfig) -> Optional[SolveError]:
+    """A failure when the estimate at the --t-eval times exceeds what the run vouches for (the
+    slab loop keeps the gaps between vertices within the tolerance; this catches what its
+    sample points within each vertex interval missed). The same on every rank."""
+    estimate = result.t_eval.get("error_estimate")
+    tol = config.tolerance
+    scale = max(result.tolerance.get("scale_x", 0.0), result.tolerance.get("scale_v", 0.0))
+    allowed = tol.refuse_factor * (tol.atol + tol.rtol * scale)
+    if estimate is None or estimate <= allowed:
+        return None
+    what = f"rtol={tol.rtol:g}, atol={tol.atol:g}" if tol.adaptive else \
+        f"{tol.rtol:g} of the motion's scale"
+    message = (f"the state at the --t-eval times is estimated to be {estimate:.3g} off, more "
+               f"than the tolerance allows ({what}): the output vertices are too far apart; "
+               "use more --cells or a degree of at most 4")
+    result.status, result.message = "failed", message
+    return SolveError(message)
 
 
 def _shared_failure(comm: MPI.Comm, failure: Optional[SolveError]) -> Optional[SolveError]:

@@ -202,6 +202,49 @@ def test_the_estimate_covers_the_t_eval_times_at_high_degree():
     assert r.t_eval["error_estimate"] >= actual and r.error_estimate >= actual
 
 
+def test_rtol_holds_at_the_t_eval_times_between_far_vertices():
+    """p = 8 with one cell per slab: the vertices meet rtol 1e-8 with 14 slabs, but the times
+    between them were 1.3e-3 off (status ok, estimate 4e-2). The gaps between vertices are now
+    judged with the slab: the controller keeps the slabs short enough for the t-eval times."""
+    common = dict(T=2, rtol=1e-8, cells=1, degree=8, x0="1")
+    plain = run(RunConfig.create("force", {"F": "-100*x"}, **common))
+    dense = run(RunConfig.create("force", {"F": "-100*x"}, t_eval="0:2:201", **common))
+    actual = max(dense.t_eval["error"]["x_max"], dense.t_eval["error"]["v_max"])
+    allowed = 10 * 1e-8 * max(dense.tolerance["scale_x"], dense.tolerance["scale_v"])
+    assert dense.status == "ok" and actual <= dense.t_eval["error_estimate"] <= allowed
+    assert len(dense.slab_lengths) > len(plain.slab_lengths)
+
+
+def test_t_eval_beyond_what_the_run_vouches_for_fails(monkeypatch):
+    """Without the slab loop's judging of the gaps (patched out), the estimate at the t-eval
+    times exceeds the tolerance: the run fails (exit 3) with its results kept, never ok."""
+    from fem_dual import SolveError, driver
+
+    monkeypatch.setattr(driver, "_output", lambda config: None)
+    with pytest.raises(SolveError, match="--t-eval times is estimated") as caught:
+        run(RunConfig.create("force", {"F": "-100*x"}, T=2, rtol=1e-8, cells=1, degree=8,
+                             x0="1", t_eval="0:2:201"))
+    partial = caught.value.partial
+    assert partial.status == "failed" and len(partial.t_eval["t"]) == 201
+
+
+def test_slab_gaps_are_the_dense_estimate_at_their_points():
+    from fem_dual.config import _scene
+    from fem_dual.dense import GAP_POINTS, hermite_estimate, slab_interpolation_gaps
+
+    scene = _scene("force", {"F": "-x - x**3, -2*y + 0.3*x*y"})
+    r = run(RunConfig.create(scene, T=3, slabs=3, cells=4, degree=3, x0="1,0.5", v0="0,1"))
+    rows = [np.arange(4 * k, 4 * k + 5) for k in range(3)]  # each slab's vertices, ends shared
+    x, v = np.stack([r.x[i] for i in rows]), np.stack([r.v[i] for i in rows])
+    gaps = slab_interpolation_gaps(scene, np.linspace(0, 1, 5), 1.0, x, v)
+    for k in range(3):
+        t = r.t[rows[k]]
+        times = (t[:-1, None] + np.diff(t)[:, None] * np.array(GAP_POINTS)).ravel()
+        _, _, est = hermite_estimate(scene, r.t, r.x, r.v, times)
+        assert abs(gaps[k].max() - est.max()) <= 1e-9 * est.max()
+    assert gaps.min() > 0
+
+
 def test_at_rejects_nan_and_accepts_nothing():
     r = run(RunConfig.create("ziegler", T=1, cells=4))
     with pytest.raises(InputError, match="finite"):
