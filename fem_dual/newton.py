@@ -53,6 +53,7 @@ NEWTON_DEFAULTS: Dict[str, str] = {
 # options) is measured by the error estimate itself (Simulation.algebraic_error).
 ROUND_OFF_REDUCTION = 1e-9
 ROUND_OFF_ABSOLUTE = 1e-12
+BACKWARD_ROUNDOFF = 8.0  # units in the last place of the dual state (backward_floor)
 
 # Under --rtol a slab's length is the controller's guess: a Newton still above NO_PROGRESS_RATIO
 # of its first residual after NO_PROGRESS_ITS iterations is taking damped steps far from the
@@ -68,18 +69,34 @@ NO_PROGRESS_RATIO = 0.1
 _R = PETSc.SNES.ConvergedReason
 
 
-def round_off_floor(history: List[float], size: float) -> float:
-    """The residual below which Newton is at the round-off of the assembled residual."""
-    return max(ROUND_OFF_REDUCTION * history[0], ROUND_OFF_ABSOLUTE * size) if history else 0.0
+def backward_floor(jacobian_norm: float, state_norm: float) -> float:
+    """The residual that a change of the dual state by BACKWARD_ROUNDOFF units in its last
+    place makes: |J| eps |w| (max norms). The residual cannot be computed closer to zero: with
+    unbalanced weights (alpha = 1e3, beta = 1e-3: |J| = 3e5) Newton stalled at 1.6e-11, where
+    this is 8.8e-11, and was called diverged; at alpha = beta = 1 it is 6e-16."""
+    value = BACKWARD_ROUNDOFF * np.finfo(float).eps * jacobian_norm * state_norm
+    return value if math.isfinite(value) else 0.0
 
 
-def at_round_off(history: List[float], size: float) -> bool:
+def round_off_floor(history: List[float], size: float, backward: float = 0.0,
+                    first: Optional[float] = None) -> float:
+    """The residual below which Newton is at the round-off of the assembled residual: a part
+    of the first residual (`first`: the zero dual state's, for a start from a partner's
+    solution), of the size of the start state, and `backward_floor`."""
+    if not history:
+        return 0.0
+    reference = history[0] if first is None else max(first, history[0])
+    return max(ROUND_OFF_REDUCTION * reference, ROUND_OFF_ABSOLUTE * size, backward)
+
+
+def at_round_off(history: List[float], size: float, backward: float = 0.0,
+                 first: Optional[float] = None) -> bool:
     """Whether the last residual of a Newton history that SNES called diverged is at or below
     round_off_floor: taken as converged (a start already at the solution, an equilibrium,
     included)."""
     if not history or not math.isfinite(history[-1]):
         return False
-    return history[-1] <= round_off_floor(history, size)
+    return history[-1] <= round_off_floor(history, size, backward, first)
 
 
 def difference_step(z0: np.ndarray, dz: np.ndarray, relative: float,
@@ -245,13 +262,18 @@ class NewtonSlabSolver(CompiledSlab):
         p = self.problem
         size = max(float(np.abs(p.x0.value).max()),
                    float(np.abs(p.c["M"].value @ p.v0.value).max()))
-        if reason < 0 and not at_round_off(history, size):
+        backward = 0.0
+        if reason < 0:  # (collective norms: every rank has the same reason)
+            J = self.snes.getJacobian()[0]
+            backward = backward_floor(J.norm(PETSc.NormType.NORM_INFINITY),
+                                      self.x.norm(PETSc.NormType.NORM_INFINITY))
+        if reason < 0 and not at_round_off(history, size, backward, warm):
             raise SolveError(f"Newton did not converge ({_REASONS.get(reason, reason)}, residual "
                              f"{history[-1] if history else float('nan'):.3g} after "
                              f"{self.snes.getIterationNumber()} iterations); use smaller slabs "
                              "(more --slabs)")
         self._update(self.x)
-        self._floor = round_off_floor(history, size)
+        self._floor = round_off_floor(history, size, backward, warm)
         self.iterations.append(self.snes.getIterationNumber())
         self.residual_norms.append(history[-1] if history else 0.0)
         self.histories.append(history)

@@ -17,7 +17,7 @@ import numpy as np
 
 from fem_dual.errors import SolveError
 from fem_dual.local_action import BandedLU, LocalAction, _quiet
-from fem_dual.newton import (NEWTON_DEFAULTS, NO_PROGRESS_RATIO, at_round_off,
+from fem_dual.newton import (NEWTON_DEFAULTS, NO_PROGRESS_RATIO, backward_floor,
                              difference_step, round_off_floor)
 from fem_dual.problem import SlabProblem
 from fem_dual.stepper import stalled
@@ -34,6 +34,11 @@ MIN_LAMBDA = 1e-12  # the shortest step the line search tries
 # start at rest in an equilibrium took ten steps of 1e-15 and moved the state by 1e-14).
 # SNES stops there by the luck of its line search, whose noisy trial residuals do not fall.
 RESIDUAL_ROUNDOFF = 64 * np.finfo(float).eps
+
+
+def _band_norm(band: np.ndarray) -> float:
+    """The max norm of a symmetric matrix in band storage (its largest column sum)."""
+    return float(np.abs(band).sum(axis=0).max(initial=0.0))
 
 
 def _norm(a: np.ndarray) -> float:
@@ -115,10 +120,12 @@ class PointwiseNewtonSolver(_PointwiseSolver):
         elif warm is None and fnorm < atol:  # at round-off from the start (an equilibrium)
             reason = "CONVERGED_FNORM_ABS"
         failure: Optional[str] = None  # why the implicit DtP map failed at the last trial
+        backward = 0.0  # backward_floor at the current iterate
         while reason is None:
             if band is None:  # (a state whose residual was finite has a Jacobian)
                 reason = "DIVERGED_FNORM_NAN"
                 break
+            backward = backward_floor(_band_norm(band), float(np.abs(x).max(initial=0.0)))
             lu = local.factor(band)
             if lu.singular:
                 reason = "DIVERGED_LINEAR_SOLVE"
@@ -129,7 +136,7 @@ class PointwiseNewtonSolver(_PointwiseSolver):
                 reason = "DIVERGED_LINEAR_SOLVE"
                 break
             lam, trial = 1.0, None
-            floor = round_off_floor(history, size)
+            floor = round_off_floor(history, size, backward, warm)
             while lam >= MIN_LAMBDA:
                 trial = x - lam * step
                 local.set_state(trial)
@@ -182,12 +189,12 @@ class PointwiseNewtonSolver(_PointwiseSolver):
             local.set_state(x)
             if error:
                 raise SolveError(error)
-            if not at_round_off(history, size):
+            if not history[-1] <= round_off_floor(history, size, backward, warm):
                 raise SolveError(f"Newton did not converge ({reason}, residual "
                                  f"{history[-1]:.3g} after {it} iterations); use smaller "
                                  "slabs (more --slabs)")
         local.set_state(x)
-        self._floor = round_off_floor(history, size)
+        self._floor = round_off_floor(history, size, backward, warm)
         self.iterations.append(it)
         self.residual_norms.append(history[-1])
         self.histories.append(history)

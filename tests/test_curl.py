@@ -80,6 +80,17 @@ def test_lifted_newton_ends_quadratically():
         assert all(r[k + 1] <= 1e3 * r[k] ** 2 for k in tail), history
 
 
+@pytest.mark.parametrize("assembly", ["pointwise", "forms"])
+def test_unbalanced_weights_converge_at_their_round_off(assembly):
+    """alpha = 1e3, beta = 1e-3: |J| ~ 3e5, so the residual stalls near |J| eps |w| ~ 1e-10;
+    Newton was called diverged there (residual 3.4e-11, exit 3) although the slab was solved
+    (the error 1.8e-10 within the estimate). The round-off floor now includes |J| eps |w|."""
+    r = run(RunConfig.create("curl3d", {"alpha": "1e3", "beta": "1e-3"}, T=0.5, cells=8,
+                             degree=3, max_halvings=0, assembly=assembly))
+    err = max(r.error["x_max"], r.error["v_max"])
+    assert r.status == "ok" and err <= r.error_estimate < 1e-8
+
+
 @pytest.mark.serial
 @pytest.mark.parametrize("scene", ["curl3d", "curl2d", "curl2d-ufl", "curl2d-lifted"])
 def test_jacobian_symmetric(scene):
