@@ -82,6 +82,30 @@ def _choice(name: str, value, choices: Sequence[str]) -> str:
     return value
 
 
+def _state_in_range(x0: np.ndarray, v0: np.ndarray) -> None:
+    """InputError for a start state whose squares overflow in the dual action (it ended as a
+    Newton failure with an infinite residual, exit 3)."""
+    from fem_dual.orbit_input import STATE_MAX
+
+    for name, value in (("x0", x0), ("v0", v0)):
+        size = float(np.abs(value).max(initial=0.0))
+        if size > STATE_MAX:
+            raise InputError(f"{name}={','.join(map(repr, map(float, value)))}: an entry of "
+                             f"size {size:.3g} is beyond {STATE_MAX:g}, where the dual action's "
+                             "squares of the state overflow; rescale the coordinates")
+
+
+def _force_in_range(f0: np.ndarray, x0: np.ndarray) -> None:
+    """InputError for a start where the force's squares overflow in the dual action."""
+    from fem_dual.orbit_input import STATE_MAX
+
+    size = float(np.abs(f0).max(initial=0.0))
+    if size > STATE_MAX:
+        raise InputError(f"the force at x0={','.join(map(repr, map(float, x0)))} is of size "
+                         f"{size:.3g}, beyond {STATE_MAX:g}, where the dual action's squares "
+                         "overflow; rescale the force or the coordinates")
+
+
 def _scene(scene, params) -> Scene:
     """The validated scene of `scene`: a name (with `params`), a Scene class (with `params`) or a
     Scene object (without), which is validated like one built from its name."""
@@ -323,6 +347,7 @@ class RunConfig:
         n = scene.n
         x0_ = parse_vector("x0", scene.default_x0 if x0 is None else x0, n)
         v0_ = parse_vector("v0", scene.default_v0 if v0 is None else v0, n)
+        _state_in_range(x0_, v0_)
         out_ = _out(out)
         petsc_ = _petsc(petsc)
         halvings = _whole_number("max-halvings", max_halvings, minimum=0)
@@ -366,6 +391,7 @@ class RunConfig:
             if f0.shape != (n,) or not np.isfinite(f0).all():
                 raise InputError(f"the force is not finite at x0={','.join(map(repr, x0_))} "
                                  f"(F = {','.join(map(str, np.ravel(f0)))})")
+            _force_in_range(f0, x0_)
         rtol_ = None if rtol is None else _tolerance("rtol", rtol)
         if atol is not None and rtol is None:
             raise InputError(f"atol={atol!r} needs rtol (atol alone sets no tolerance)")

@@ -156,7 +156,8 @@ class Energy:
 MAX_RADIANS_PER_CELL = 8.0  # a guess that turns faster than this per cell cannot be resolved
 
 
-STATE_RANGE = (1e-150, 1e150)  # |x0|, |v0| an orbit's action can hold (it squares them)
+STATE_MAX = 1e150  # |x0|, |v0| a dual action can hold (it squares them; runs refuse more too)
+STATE_RANGE = (1e-150, STATE_MAX)  # an orbit's: it divides by its size as well
 
 
 def check_resolution(scene, x0: np.ndarray, v0: np.ndarray, T0: float, cells: int) -> None:

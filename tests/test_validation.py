@@ -91,6 +91,11 @@ def test_too_many_dofs_refused_before_allocating(argv, named, tmp_path):
     (["curl2d", "--param", "m=1e-320"], "m=1e-320 is subnormal"),
     (["curl2d", "--param", "beta=1e-320"], "beta=1e-320 is subnormal"),
     (["force", "--F", "a*x", "--x0", "1", "--param", "a=1e-320"], "a=1e-320 is subnormal"),
+    # these ended as Newton failures with infinite residuals (exit 3, "use smaller slabs")
+    (["curl3d", "--v0", "1e300,0,0"], "v0=1e+300"),
+    (["curl3d", "--param", "alpha=1e300"], "alpha=1e+300 is out of range"),
+    (["curl3d", "--param", "beta=1e-300"], "beta=1e-300 is out of range"),
+    (["force", "--F", "exp(x)", "--x0", "700"], "the force at x0=700.0"),
 ])
 def test_subnormal_and_overflowing_parameters(argv, named, capsys):
     """Each ended in a traceback (LinAlgError, OverflowError), a solve failure or a message

@@ -13,7 +13,7 @@ import numpy as np
 
 from fem_dual.errors import InputError
 from fem_dual.scenes.base import (LazyForms, Scene, implicit_forms, matrix_field,
-                                  require_positive)
+                                  require_positive, require_square)
 
 __all__ = ["ForceScene", "Curl3D", "Curl2D", "Curl2DLifted", "Curl3DUFL", "Curl2DUFL"]
 
@@ -30,6 +30,8 @@ class ForceScene(Scene):
 
     def validate(self) -> None:
         require_positive(self, "m", "alpha", "beta")
+        require_square(self, "alpha", "H's position weight and the dual action")
+        require_square(self, "beta", "H's velocity weight, which is inverted")
 
     def mass_matrix(self) -> np.ndarray:
         return self.m * np.eye(self.n)
