@@ -15,7 +15,6 @@ from typing import Tuple
 
 import numpy as np
 
-from fem_dual.base_state import force_jacobian
 
 __all__ = ["rates", "hermite_at", "hermite_estimate", "slab_interpolation_gaps",
            "GAP_ORDER"]
@@ -27,29 +26,56 @@ GAP_POINTS = (0.25, 0.5, 0.75)  # where within each vertex interval a slab's gap
 
 def rates(scene, x: np.ndarray, v: np.ndarray) -> Tuple[np.ndarray, ...]:
     """(a, j, snap) at each row of (x, v): the acceleration and its first two time derivatives
-    along the motion (exact for linear scenes; for a force, its Jacobian by central differences
-    and its second derivative along v by a second difference)."""
+    along the motion (exact for linear scenes; for a force, its derivatives along v and along a
+    by central differences and its second derivative along v by a second difference, all rows
+    at once where the force takes them (`_forces`))."""
     Minv = np.linalg.inv(scene.mass_matrix())
     if scene.linear:
         K, D = scene.stiffness_matrix(), scene.damping_matrix()
         a = -(x @ K.T + v @ D.T) @ Minv.T
         j = -(v @ K.T + a @ D.T) @ Minv.T
         return a, j, -(a @ K.T + j @ D.T) @ Minv.T
-    F = scene.force_numpy
-    a, j, snap = (np.empty_like(x) for _ in range(3))
-    for i, (xi, vi) in enumerate(zip(x, v)):
-        J = force_jacobian(F, xi)
-        a[i] = Minv @ F(xi)
-        j[i] = Minv @ (J @ vi)
-        size = float(np.abs(vi).max())
-        curvature = np.zeros_like(xi)
-        if size > 0:  # along the unit direction, then scaled: no overflow for |v| ~ 1e-300
-            h = 1e-4 * max(1.0, float(np.abs(xi).max()))
-            u = vi / size
-            with np.errstate(over="ignore", invalid="ignore"):  # (array products: inf, no raise)
-                curvature = size * (size * ((F(xi + h * u) - 2 * F(xi) + F(xi - h * u)) / h ** 2))
-        snap[i] = Minv @ (curvature + J @ a[i])
+    with np.errstate(over="ignore", invalid="ignore"):  # (array products: inf, no raise)
+        F0 = _forces(scene, x)
+        a = F0 @ Minv.T
+        reach = np.maximum(1.0, np.abs(x).max(axis=1, initial=0.0))[:, None]
+        j = _along(scene, x, v, 1e-6 * reach, F0, first=True) @ Minv.T
+        # along the unit direction of v, then scaled: no overflow for |v| ~ 1e-300
+        curvature = _along(scene, x, v, 1e-4 * reach, F0, first=False)
+        snap = (curvature + _along(scene, x, a, 1e-6 * reach, F0, first=True)) @ Minv.T
     return a, j, snap
+
+
+def _along(scene, x: np.ndarray, d: np.ndarray, h: np.ndarray, F0: np.ndarray,
+           first: bool) -> np.ndarray:
+    """Per row, the first (J d) or second (F''[d, d]) derivative of the force along d, by a
+    central difference of step h (rows, 1) along d's unit direction."""
+    size = np.abs(d).max(axis=1, initial=0.0)[:, None]
+    u = np.divide(d, size, out=np.zeros_like(d), where=size > 0)
+    plus, minus = _forces(scene, x + h * u), _forces(scene, x - h * u)
+    if first:
+        return size * (plus - minus) / (2 * h)
+    return size * (size * ((plus - 2 * F0 + minus) / h ** 2))
+
+
+def _forces(scene, x: np.ndarray) -> np.ndarray:
+    """scene.force_numpy at each row of x (rows, n): in one call on the columns where the force
+    is written with array operations (checked against single calls at the first and the last
+    row), else row by row."""
+    F = scene.force_numpy
+    rows, n = x.shape
+    if rows > 1:
+        try:
+            out = np.asarray(F(x.T), dtype=float)
+        except Exception:  # noqa: BLE001 -- a force written for one point only
+            out = None
+        if out is not None and out.shape == (n, rows):
+            out = out.T
+            ends = np.array([np.asarray(F(x[i]), dtype=float) for i in (0, rows - 1)])
+            gap = np.abs(out[[0, -1]] - ends)
+            if bool(((gap <= 1e-13 * np.abs(ends)) | (np.isnan(gap) & np.isnan(ends))).all()):
+                return out
+    return np.array([np.asarray(F(row), dtype=float) for row in x]).reshape(rows, n)
 
 
 def _hermite_basis(m: int) -> np.ndarray:
@@ -71,10 +97,9 @@ def _hermite(s: np.ndarray, h: np.ndarray, left, right) -> np.ndarray:
     """The polynomial of degree 2m - 1 with the m derivatives `left`, `right` (value and time
     derivatives, rows per point) at s = 0 and 1 of intervals of length h."""
     m = len(left)
-    hh = h[:, None]
-    data = [d * hh ** k for k, d in enumerate(left)] + [d * hh ** k for k, d in enumerate(right)]
-    weights = (s[:, None] ** np.arange(2 * m)) @ _BASES[m]  # the basis functions at s
-    return sum(weights[:, [k]] * data[k] for k in range(2 * m))
+    powers = h[:, None] ** np.arange(m)  # the time derivatives in units of the interval
+    weights = ((s[:, None] ** np.arange(2 * m)) @ _BASES[m]) * np.hstack([powers, powers])
+    return np.einsum("rk,krn->rn", weights, np.stack(list(left) + list(right)))
 
 
 def hermite_at(scene, t: np.ndarray, x: np.ndarray, v: np.ndarray,
@@ -109,12 +134,14 @@ def slab_interpolation_gaps(scene, s: np.ndarray, dt, x: np.ndarray,
     lo, hi = (slice(None), slice(None, -1)), (slice(None), slice(1, None))
     left = [q[lo].reshape(-1, n) for q in (x, v, a, j, snap)]
     right = [q[hi].reshape(-1, n) for q in (x, v, a, j, snap)]
-    gaps = np.zeros((slabs, 2))
-    for f in GAP_POINTS:
-        _, _, gap_x, gap_v = _interpolate(np.full(len(h), f), h, left, right, estimate=True)
-        gaps = np.maximum(gaps, np.column_stack([gap_x.reshape(slabs, -1).max(axis=1),
-                                                 gap_v.reshape(slabs, -1).max(axis=1)]))
-    return gaps
+    points = len(GAP_POINTS)  # every interval at every point at once
+    at = np.repeat(np.asarray(GAP_POINTS, dtype=float)[None, :], len(h), axis=0).ravel()
+    _, _, gap_x, gap_v = _interpolate(at, np.repeat(h, points),
+                                      [np.repeat(q, points, axis=0) for q in left],
+                                      [np.repeat(q, points, axis=0) for q in right],
+                                      estimate=True)
+    return np.column_stack([gap_x.reshape(slabs, -1).max(axis=1),
+                            gap_v.reshape(slabs, -1).max(axis=1)])
 
 
 def _interpolate(s, h, left, right, estimate: bool):
