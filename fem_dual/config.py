@@ -39,10 +39,17 @@ ASSEMBLY = ("auto", "forms", "kronecker", "pointwise")
 POINTWISE_MAX_DOFS = 20_000
 
 
-def pointwise_size(cells: int, degree: int, n: int) -> bool:
-    """Whether a slab of `cells` cells of degree `degree` (2n dual fields) is small enough for
-    auto assembly to take the pointwise path."""
-    return (cells * degree + 1) * 2 * n <= POINTWISE_MAX_DOFS
+def auto_pointwise(scene, cells: int, degree: int, petsc: Optional[Mapping[str, str]],
+                   kronecker: bool) -> bool:
+    """Whether auto assembly takes the pointwise path: not in Kronecker form, a slab of at most
+    POINTWISE_MAX_DOFS dual unknowns (`cells` cells of degree `degree`, 2n dual fields), and no
+    PETSc options for the slab solver (--petsc-option, or under its prefix in PETSC_OPTIONS),
+    which need the PETSc KSP or SNES on the forms."""
+    if kronecker or (cells * degree + 1) * 2 * scene.n > POINTWISE_MAX_DOFS:
+        return False
+    from fem_dual.petsc_check import solver_prefix, user_options
+
+    return not user_options(solver_prefix(scene.name), petsc)
 COORDINATES = ("auto", "physical", "modal")
 REFERENCES = ("auto", "none")
 MAX_TIMES = 1_000_000  # --t-eval: at most this many times
@@ -82,28 +89,16 @@ def _choice(name: str, value, choices: Sequence[str]) -> str:
     return value
 
 
-def _state_in_range(x0: np.ndarray, v0: np.ndarray) -> None:
-    """InputError for a start state whose squares overflow in the dual action (it ended as a
-    Newton failure with an infinite residual, exit 3)."""
+def _within_state_max(what: str, values: np.ndarray, advice: str) -> None:
+    """InputError when an entry of `values` (the start state, the force there) exceeds
+    STATE_MAX, where the dual action's squares overflow (it ended as a Newton failure with an
+    infinite residual, exit 3)."""
     from fem_dual.orbit_input import STATE_MAX
 
-    for name, value in (("x0", x0), ("v0", v0)):
-        size = float(np.abs(value).max(initial=0.0))
-        if size > STATE_MAX:
-            raise InputError(f"{name}={','.join(map(repr, map(float, value)))}: an entry of "
-                             f"size {size:.3g} is beyond {STATE_MAX:g}, where the dual action's "
-                             "squares of the state overflow; rescale the coordinates")
-
-
-def _force_in_range(f0: np.ndarray, x0: np.ndarray) -> None:
-    """InputError for a start where the force's squares overflow in the dual action."""
-    from fem_dual.orbit_input import STATE_MAX
-
-    size = float(np.abs(f0).max(initial=0.0))
+    size = float(np.abs(values).max(initial=0.0))
     if size > STATE_MAX:
-        raise InputError(f"the force at x0={','.join(map(repr, map(float, x0)))} is of size "
-                         f"{size:.3g}, beyond {STATE_MAX:g}, where the dual action's squares "
-                         "overflow; rescale the force or the coordinates")
+        raise InputError(f"{what}: an entry of size {size:.3g} is beyond {STATE_MAX:g}, where "
+                         f"the dual action's squares overflow; {advice}")
 
 
 def _scene(scene, params) -> Scene:
@@ -275,16 +270,11 @@ class RunConfig:
     def pointwise(self) -> bool:
         """Whether the slabs are assembled pointwise and solved by banded LU (linear scenes) or
         the dense Newton (nonlinear ones) of fem_dual.pointwise_newton: asked for, or auto
-        unless the Kronecker form is used or PETSc options are given for the slab solver
-        (--petsc-option, or under its prefix in PETSC_OPTIONS), which need the PETSc KSP or
-        SNES on the forms."""
+        (`auto_pointwise`)."""
         if self.assembly != "auto":
             return self.assembly == "pointwise"
-        if self.kronecker or not pointwise_size(self.slab_cells, self.degree, self.scene.n):
-            return False
-        from fem_dual.petsc_check import solver_prefix, user_options
-
-        return not user_options(solver_prefix(self.scene.name), self.petsc)
+        return auto_pointwise(self.scene, self.slab_cells, self.degree, self.petsc,
+                              self.kronecker)
 
     @property
     def kronecker(self) -> bool:
@@ -347,7 +337,9 @@ class RunConfig:
         n = scene.n
         x0_ = parse_vector("x0", scene.default_x0 if x0 is None else x0, n)
         v0_ = parse_vector("v0", scene.default_v0 if v0 is None else v0, n)
-        _state_in_range(x0_, v0_)
+        for name, value in (("x0", x0_), ("v0", v0_)):
+            _within_state_max(f"{name}={','.join(map(repr, map(float, value)))}", value,
+                              "rescale the coordinates")
         out_ = _out(out)
         petsc_ = _petsc(petsc)
         halvings = _whole_number("max-halvings", max_halvings, minimum=0)
@@ -391,7 +383,8 @@ class RunConfig:
             if f0.shape != (n,) or not np.isfinite(f0).all():
                 raise InputError(f"the force is not finite at x0={','.join(map(repr, x0_))} "
                                  f"(F = {','.join(map(str, np.ravel(f0)))})")
-            _force_in_range(f0, x0_)
+            _within_state_max(f"the force at x0={','.join(map(repr, map(float, x0_)))}", f0,
+                              "rescale the force or the coordinates")
         rtol_ = None if rtol is None else _tolerance("rtol", rtol)
         if atol is not None and rtol is None:
             raise InputError(f"atol={atol!r} needs rtol (atol alone sets no tolerance)")
@@ -410,15 +403,14 @@ class RunConfig:
         """The PETSc options (--petsc-option, PETSC_OPTIONS) are input too: InputError naming a
         bad one. Imports PETSc (create does it last; `check_petsc=False` leaves it to the
         caller, whose own checks then answer without PETSc)."""
-        from fem_dual.petsc_check import check_user_options, solver_prefix
-
-        from fem_dual.petsc_check import user_options
+        from fem_dual.petsc_check import check_user_options, solver_prefix, user_options
 
         scene = self.scene
         path = ("kronecker" if self.kronecker else "forms") if scene.linear else "snes"
         prefix = solver_prefix(scene.name)
-        if self.assembly == "pointwise" and user_options(prefix, self.petsc):
-            given = ", ".join(f"-{prefix}{k}" for k in user_options(prefix, self.petsc))
+        given = user_options(prefix, self.petsc) if self.assembly == "pointwise" else None
+        if given:
+            given = ", ".join(f"-{prefix}{k}" for k in given)
             raise InputError(f"assembly=pointwise uses no PETSc solver: the PETSc options "
                              f"({given}, from PETSC_OPTIONS) need assembly=forms")
         check_user_options(prefix, self.petsc, path)

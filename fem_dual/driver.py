@@ -196,12 +196,10 @@ class Simulation:
                  kronecker: bool = False, with_dual: bool = True, base: str = "start",
                  modal: "bool | ModalBasis" = False, mesh=None,
                  pointwise: Optional[bool] = None):
-        if pointwise is None:  # as RunConfig's auto: unless PETSc options ask for PETSc
-            from fem_dual.config import pointwise_size
-            from fem_dual.petsc_check import user_options
+        if pointwise is None:  # as RunConfig's auto
+            from fem_dual.config import auto_pointwise
 
-            pointwise = (not user_options(solver_prefix(scene.name), petsc)
-                         and pointwise_size(cells, degree, scene.n))
+            pointwise = auto_pointwise(scene, cells, degree, petsc, kronecker)
         pointwise = pointwise and not kronecker
 
         def build():
@@ -632,8 +630,7 @@ def _judge(vals: VertexValues, companion: VertexValues, algebraic: Optional[np.n
     err_local = float(est.err_local[0])
     slab = est.slab(0, t0, dt)
     tol = weights.tol
-    what = f"rtol={tol.rtol:g}, atol={tol.atol:g}" if tol.adaptive else \
-        f"{tol.rtol:g} of the motion's scale"
+    what = tol.label
     if est.err_output is not None and est.err_output[0] > 1.0:
         return "retry", err_local, (f"the state between output vertices is estimated to be "
                                     f"{est.err_output[0]:.3g} times the tolerance ({what}) off: "
@@ -1081,11 +1078,8 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool,
         record["companion_degree"] = sim.companion.degree
         if scene.linear:
             record["weighting"] = scene.weighting()
-            record["assembly"] = "kronecker" if sim.kronecker else "forms"
-        else:
-            record["assembly"] = "pointwise" if sim.pointwise else "forms"
-        if scene.linear and sim.pointwise:
-            record["assembly"] = "pointwise"
+        record["assembly"] = ("pointwise" if sim.pointwise  # (never with kronecker)
+                              else "kronecker" if sim.kronecker else "forms")
         record["base"] = config.base_state
         if scene.linear:
             record["coordinates"] = "modal" if sim.modal is not None else "physical"
@@ -1140,10 +1134,8 @@ def _unvouched_output(result: RunResult, config: RunConfig) -> Optional[SolveErr
     allowed = tol.refuse_factor * (tol.atol + tol.rtol * scale)
     if estimate is None or estimate <= allowed:
         return None
-    what = f"rtol={tol.rtol:g}, atol={tol.atol:g}" if tol.adaptive else \
-        f"{tol.rtol:g} of the motion's scale"
     message = (f"the state at the --t-eval times is estimated to be {estimate:.3g} off, more "
-               f"than the tolerance allows ({what}): the output vertices are too far apart; "
+               f"than the tolerance allows ({tol.label}): the output vertices are too far apart; "
                "use more --cells or a degree of at most 4")
     result.status, result.message = "failed", message
     return SolveError(message)

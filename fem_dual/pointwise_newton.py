@@ -184,17 +184,18 @@ class PointwiseNewtonSolver(_PointwiseSolver):
             elif self._give_up(it, fnorm, first) or it >= MAX_IT:
                 reason = "DIVERGED_MAX_IT"
         self.x = x
+        floor = round_off_floor(history, size, backward, warm)
         if reason.startswith("DIVERGED"):
             error = failure if reason == "DIVERGED_LINE_SEARCH" else local.error
             local.set_state(x)
             if error:
                 raise SolveError(error)
-            if not history[-1] <= round_off_floor(history, size, backward, warm):
+            if not history[-1] <= floor:
                 raise SolveError(f"Newton did not converge ({reason}, residual "
                                  f"{history[-1]:.3g} after {it} iterations); use smaller "
                                  "slabs (more --slabs)")
         local.set_state(x)
-        self._floor = round_off_floor(history, size, backward, warm)
+        self._floor = floor
         self.iterations.append(it)
         self.residual_norms.append(history[-1])
         self.histories.append(history)

@@ -65,6 +65,12 @@ class Tolerance:
         return cls(REFUSE_RELATIVE, 0.0, False)
 
     @property
+    def label(self) -> str:
+        """The tolerance as messages name it."""
+        return (f"rtol={self.rtol:g}, atol={self.atol:g}" if self.adaptive
+                else f"{self.rtol:g} of the motion's scale")
+
+    @property
     def refuse_factor(self) -> float:
         """How far the weighted global estimate may exceed 1 before the run is refused."""
         return ACCEPT_GLOBAL if self.adaptive else 1.0
