@@ -309,10 +309,14 @@ class LocalAction:
         cells, nq, bs = len(self.cells), self.nq, self.bs
         out = out.reshape(cells, nq, -1)
         R = self._residual(np.ascontiguousarray(out[..., :2 * bs]))
+        return R, self._band(out)
+
+    def _band(self, out: np.ndarray) -> np.ndarray:
+        """The Jacobian's band (dgbtrf's storage) from an evaluation (cells, q, columns)."""
         B = self._blocks(out[..., self._hess_cols])
         band = np.bincount(self._j_flat, B.ravel()[self._j_source],
                            minlength=self._band_rows * self.size)
-        return R, band.reshape(self._band_rows, self.size)
+        return band.reshape(self._band_rows, self.size)
 
     def factor(self, band: np.ndarray) -> BandedLU:
         return BandedLU(band, self.kd)
@@ -372,10 +376,7 @@ class LocalAction:
                 _, band = self.residual_and_jacobian()
                 out = self._out_both.reshape(cells, nq, -1)
             else:
-                band = np.bincount(self._j_flat,
-                                   self._blocks(out[..., self._hess_cols]).ravel()[self._j_source],
-                                   minlength=self._band_rows * self.size).reshape(
-                    self._band_rows, self.size)
+                band = self._band(out)
             Gz = self._base_derivative(self.cells).reshape(cells, nq, 2 * bs, 2 * n)
             self._tangent_at = (key[0], key[1].copy(), self.factor(band), self._hessian(out), Gz)
         _, _, lu, hessian, Gz = self._tangent_at
