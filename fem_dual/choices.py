@@ -4,6 +4,6 @@ line answers bad input without importing DOLFINx or PETSc)."""
 __all__ = ["BASES", "RECOVERIES"]
 
 # the base state of H on a slab: see fem_dual.problem
-BASES = ("start", "zero", "predictor")
+BASES = ("start", "zero", "predictor", "rk4")
 # how the primal state is read from the dual solution: see fem_dual.recovery
 RECOVERIES = ("momentum", "dtp")

@@ -94,7 +94,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--base", default="auto", help="base state of H on each slab: zero "
                    "(residual-free for linear scenes: unresolved fast modes are damped), "
                    "predictor (linearly implicit Euler from the slab start: near the motion, "
-                   "nearly residual-free), start (the slab's start state held constant), auto "
+                   "nearly residual-free), rk4 (nonlinear scenes that are not stiff: classical "
+                   "Runge-Kutta from the slab start; Newton converges on longer slabs, --rtol "
+                   "takes fewer), start (the slab's start state held constant), auto "
                    "(default) = zero for stiff linear scenes, predictor for nonlinear ones "
                    "stiff at the start, start otherwise")
     r.add_argument("--coordinates", default="auto", help="linear scenes: modal (solve in the "

@@ -365,6 +365,9 @@ class RunConfig:
         if assembly == "kronecker" and base == "predictor":
             raise InputError("base=predictor needs assembly=forms (the Kronecker form holds the "
                              "start or zero base only)")
+        if base == "rk4" and scene.linear:
+            raise InputError(f"base=rk4 is for nonlinear scenes ({scene.name} is linear: its "
+                             "slabs are solved by superposition from the start or zero base)")
         _choice("coordinates", coordinates, COORDINATES)
         if coordinates == "modal":
             if not scene.linear:

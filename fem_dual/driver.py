@@ -186,6 +186,8 @@ class Simulation:
         modal: linear scenes: solve in modal coordinates (fem_dual.modal); a ModalBasis is
             shared (the error companion uses its partner's).
         mesh: the slab mesh to share (the companion uses its partner's).
+        shared_predictor: the base state's predictor to share (the companion uses its
+            partner's: fem_dual.problem.SlabProblem).
         pointwise: assemble pointwise and solve by the banded LU or dense Newton of
             fem_dual.pointwise_newton (every rank solves the whole slab), not by PETSc KSP or
             SNES on forms distributed over `comm`; None: unless PETSc options are given.
@@ -195,7 +197,7 @@ class Simulation:
                  petsc: Optional[Dict[str, str]] = None, recovery: str = "momentum",
                  kronecker: bool = False, with_dual: bool = True, base: str = "start",
                  modal: "bool | ModalBasis" = False, mesh=None,
-                 pointwise: Optional[bool] = None):
+                 pointwise: Optional[bool] = None, shared_predictor=None):
         if pointwise is None:  # as RunConfig's auto
             from fem_dual.config import auto_pointwise
 
@@ -205,7 +207,7 @@ class Simulation:
         def build():
             with quiet_jit_logging():
                 self._build(scene, degree, cells, comm, petsc, recovery, kronecker, with_dual,
-                            base, modal, mesh, pointwise)
+                            base, modal, mesh, pointwise, shared_predictor)
         # The pointwise path's forms and expressions live on COMM_SELF meshes, so every rank
         # would compile the same code at the same time: FFCx lets one write it and the others
         # wait 10 s for it, then fail, alone, leaving the rest in a collective. Rank 0
@@ -215,7 +217,7 @@ class Simulation:
     def _build(self, scene, degree: int, cells: int, comm: MPI.Comm,
                petsc: Optional[Dict[str, str]], recovery: str, kronecker: bool,
                with_dual: bool, base: str, modal: "bool | ModalBasis", mesh=None,
-               pointwise: Optional[bool] = None) -> None:
+               pointwise: Optional[bool] = None, shared_predictor=None) -> None:
         tic = time.perf_counter()
         self.scene, self.degree, self.cells, self.comm = scene, degree, cells, comm
         self.prefix = solver_prefix(scene.name)
@@ -229,13 +231,14 @@ class Simulation:
             self.solver = KroneckerSolver(self.problem, self.prefix, petsc)
             self.sampler = KroneckerSampler(self.problem, with_dual=with_dual)
         elif pointwise:  # the slab is small: every rank holds and solves it whole
-            self.problem = SlabProblem(solved, degree, cells, MPI.COMM_SELF, base, mesh)
+            self.problem = SlabProblem(solved, degree, cells, MPI.COMM_SELF, base, mesh,
+                                       shared_predictor)
             self.solver = (PointwiseLinearSolver if scene.linear
                            else PointwiseNewtonSolver)(self.problem)
             self.sampler = VertexSampler(self.problem, with_dual=with_dual, recovery=recovery,
                                          momenta=self.solver.local.momenta)
         else:
-            self.problem = SlabProblem(solved, degree, cells, comm, base, mesh)
+            self.problem = SlabProblem(solved, degree, cells, comm, base, mesh, shared_predictor)
             solver_class = LinearSlabSolver if scene.linear else NewtonSlabSolver
             self.solver = solver_class(self.problem, self.prefix, petsc)
             self.sampler = VertexSampler(self.problem, with_dual=with_dual, recovery=recovery)
@@ -293,7 +296,9 @@ class Simulation:
                                          modal=self.modal is not None and self.modal,
                                          mesh=getattr(self.problem, "mesh", None)
                                          if not self.kronecker else None,
-                                         pointwise=self.pointwise)
+                                         pointwise=self.pointwise,
+                                         shared_predictor=getattr(self.problem, "predictor",
+                                                                  None))
             self.setup_s += self._companion.setup_s
         return self._companion
 

@@ -361,10 +361,11 @@ class LocalAction:
         solved at the current state, exactly: J dw = -dR/dz0 dz with J at the solution, and the
         momenta's derivative. z0 enters through the initial terms and, where the base state is
         the start state, through the base state in the density (its derivative by UFL; for an
-        implicit DtP map the Newton-linearised map has the exact derivative at the root)."""
+        implicit DtP map the Newton-linearised map has the exact derivative at the root). A
+        base state that is a function of time (the flow predictor's) is held: it moves the
+        answer only by the discretisation error, so the tangent with it held is the slab
+        map's to that order."""
         p = self.problem
-        if p.Zbar is None:
-            raise ValueError("the base state is not a constant: no exact tangent")
         n, bs, cells, nq = p.n, self.bs, len(self.cells), self.nq
         if self.sync():
             raise ValueError(self.error)
@@ -377,11 +378,12 @@ class LocalAction:
                 out = self._out_both.reshape(cells, nq, -1)
             else:
                 band = self._band(out)
-            Gz = self._base_derivative(self.cells).reshape(cells, nq, 2 * bs, 2 * n)
+            Gz = (None if self._base_derivative is None else
+                  self._base_derivative(self.cells).reshape(cells, nq, 2 * bs, 2 * n))
             self._tangent_at = (key[0], key[1].copy(), self.factor(band), self._hessian(out), Gz)
         _, _, lu, hessian, Gz = self._tangent_at
-        dzbar = dz if p.base == "start" else np.zeros_like(dz)
-        dg_base = Gz @ dzbar  # (cells, q, 2 bs)
+        dg_base = (Gz @ dz if p.base == "start" else  # (cells, q, 2 bs)
+                   np.zeros((cells, nq, 2 * bs)))
         r = np.matmul(self._Tg, dg_base.reshape(cells, nq * 2, bs))
         rhs = np.bincount(self._r_rows, r.ravel()[self._r_keep], minlength=self.size)
         saved = p.x0.value.copy(), p.v0.value.copy()

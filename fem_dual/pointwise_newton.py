@@ -29,6 +29,7 @@ STOL = float(NEWTON_DEFAULTS["snes_stol"])
 MAX_IT = int(NEWTON_DEFAULTS["snes_max_it"])
 DECREASE = 1e-4  # sufficient decrease of the line search (PETSc's bt: alpha)
 MIN_LAMBDA = 1e-12  # the shortest step the line search tries
+GUESSED_MIN_LAMBDA = 0.05  # ... on a slab whose length the controller guessed (--rtol)
 # A residual below this times the size of the start state is round-off of its assembly (the
 # initial terms enter it as they are): Newton stops there, where its steps would be noise (a
 # start at rest in an equilibrium took ten steps of 1e-15 and moved the state by 1e-14).
@@ -148,8 +149,8 @@ class PointwiseNewtonSolver(_PointwiseSolver):
                 if fnorm <= floor:  # at round-off already: shorter steps are noise too (a
                     lam, failure = 0.0, None  # companion cut 40 to 1e-12, then was accepted)
                     break
-                if it == 0 and self.patience is not None:
-                    lam = -1.0  # a guessed length whose first full step fails: see below
+                if self.patience is not None and (it == 0 or lam < GUESSED_MIN_LAMBDA):
+                    lam = -1.0  # a guessed length whose Newton is damped hard: see below
                     break
                 # PETSc's bt: halve past NaN, else the minimum of the quadratic model of
                 # |F|^2 / 2 along the step, kept within [0.1, 0.5] of the step
@@ -162,7 +163,10 @@ class PointwiseNewtonSolver(_PointwiseSolver):
                 # a guessed length (--rtol) whose first full step did not lower the residual:
                 # every such Newton failed on curl3d T = 8 (the damped steps then gain a tenth
                 # each), every converging one took its first step whole; the driver halves the
-                # slab now (the five failures took a fifth of the run's evaluations)
+                # slab now (the five failures took a fifth of the run's evaluations). So for a
+                # later step cut below GUESSED_MIN_LAMBDA (with the rk4 base, the whole horizon
+                # of curl3d T = 8 took 8 damped steps and some 50 evaluations before its line
+                # search failed)
                 local.set_state(x)
                 reason = "DIVERGED_DAMPED_START"
                 break
@@ -235,8 +239,9 @@ class PointwiseNewtonSolver(_PointwiseSolver):
 
     @property
     def exact_tangents(self) -> bool:
-        """Whether `exact_tangent` applies (a base state that is a constant)."""
-        return self.problem.Zbar is not None
+        """Whether `exact_tangent` applies: a base state that is a constant, or the flow
+        predictor's, held (fem_dual.local_action.LocalAction.vertex_tangent)."""
+        return self.problem.Zbar is not None or self.problem.base == "rk4"
 
     def exact_tangent(self, dz: np.ndarray) -> np.ndarray:
         """d(x, v)/dz0 . dz at the vertices (vertices, 2n) of the converged slab, exactly

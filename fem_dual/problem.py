@@ -19,7 +19,7 @@ from dolfinx import fem
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from fem_dual.base_state import Predictor
+from fem_dual.base_state import predictor
 from fem_dual.compat import constant, release_function_vector, vector_space
 from fem_dual.pointwise import PointwiseDtP
 from fem_dual.scenes.base import Scene
@@ -33,7 +33,8 @@ __all__ = ["SlabProblem", "BASES"]
 # of the base state enters the slab action: a constant start state leaves the residual
 # (-v0, -F(x0)/m), an O(omega) forcing that modes the cells do not resolve turn into growth;
 # zero is an exact solution of a linear system, and its slab map damps unresolved modes.
-# "predictor" (fem_dual.base_state) is a function of time near the motion with a small residual.
+# "predictor" (fem_dual.base_state) is a function of time near the motion with a small residual;
+# "rk4" one closer still, for motions that are not stiff (explicit Runge-Kutta).
 from fem_dual.choices import BASES  # noqa: E402 -- named here, validated in config
 
 
@@ -48,10 +49,12 @@ class SlabProblem:
         base: the base state of H (BASES).
         mesh: a slab mesh of `cells` cells to share (the error companion uses its partner's,
             so that its Newton can start from the partner's solution).
+        shared_predictor: the predictor of a base state that is a function of time, to share
+            (the error companion reads its partner's rk4 run instead of stepping again).
     """
 
     def __init__(self, scene: Scene, degree: int, cells: int, comm: MPI.Comm = MPI.COMM_WORLD,
-                 base: str = "start", mesh=None):
+                 base: str = "start", mesh=None, shared_predictor=None):
         if base not in BASES:
             raise ValueError(f"base={base!r} is not one of {BASES}")
         self.scene, self.degree, self.comm, self.base = scene, degree, comm, base
@@ -69,9 +72,9 @@ class SlabProblem:
         self.dt = constant(msh, 1.0)
         self.t0 = constant(msh, 0.0)
         self.x0, self.v0 = constant(msh, zero), constant(msh, zero)
-        self.predictor: Optional[Predictor] = None
-        if base == "predictor":  # a function of time, interpolated one degree above the duals
-            self.predictor = Predictor(scene)
+        self.predictor = None
+        if base in ("predictor", "rk4"):  # a function of time, one degree above the duals
+            self.predictor = shared_predictor or predictor(scene, base, cells * (degree + 1))
             space = vector_space(msh, degree + 1, n)
             self.xbar, self.vbar = fem.Function(space), fem.Function(space)
             # node coordinates of the scalar space: the blocked space's nodes, in its order
