@@ -106,8 +106,9 @@ class FlowPredictor:
         if not (np.isfinite(states).all() and np.isfinite(rates).all()):
             from fem_dual.errors import SolveError
 
-            raise SolveError("the rk4 base state overflowed on the slab (explicit Runge-Kutta "
-                             "is unstable on stiff motions: use --base predictor)")
+            raise SolveError("the rk4 base state overflowed on the slab: the motion blows up, "
+                             "or it is stiff, where explicit Runge-Kutta is unstable (use "
+                             "--base predictor)")
         return states, rates
 
     def __call__(self, z0: np.ndarray, t: np.ndarray) -> np.ndarray:

@@ -23,6 +23,8 @@ def print0(comm: MPI.Comm, *args: Any, file=None, **kwargs: Any) -> None:
 
 def allreduce(comm: MPI.Comm, value: Any, op: str = "sum") -> Any:
     """The one helper through which global numbers are reduced (sum, max, min, land, lor)."""
+    if comm.size == 1:  # (mpi4py would pickle a copy: microseconds, per Newton step)
+        return value
     ops = {"sum": MPI.SUM, "max": MPI.MAX, "min": MPI.MIN, "land": MPI.LAND, "lor": MPI.LOR}
     return comm.allreduce(value, op=ops[op])
 

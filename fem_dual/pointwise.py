@@ -123,12 +123,10 @@ class PointwiseDtP:
         """Why the points' G_x leave the base state's branch (smallest / largest eigenvalue
         below BRANCH_TOL, or not finite), or None."""
         with np.errstate(all="ignore"):
-            eig = _symmetric_eigenvalues(Gx) \
-                if np.isfinite(Gx).all() else np.full(Gx.shape[:-1], np.nan)
-            ratio = eig[..., 0] / np.abs(eig).max(axis=-1)
-        bad = ~(ratio > BRANCH_TOL)
-        if not bad.any():
+            ratio = _eigenvalue_ratio(Gx)
+        if ratio.min() > BRANCH_TOL:  # (False for a NaN among them)
             return None
+        bad = ~(ratio > BRANCH_TOL)
         where = np.unravel_index(np.argmin(np.where(np.isnan(ratio), -np.inf, ratio)), bad.shape)
         return (f"the DtP map is near singular at t = {t[where]:.6g} (smallest/largest "
                 f"eigenvalue of G_x {ratio[where]:.2g}); use smaller slabs or larger alpha")
@@ -159,10 +157,14 @@ def _inverse(A: np.ndarray) -> np.ndarray:
     return np.linalg.inv(A)
 
 
-def _symmetric_eigenvalues(A: np.ndarray) -> np.ndarray:
-    """Ascending eigenvalues of the symmetric parts of a stack of matrices."""
-    if A.shape[-1] == 2:
+def _eigenvalue_ratio(A: np.ndarray) -> np.ndarray:
+    """Smallest eigenvalue over the largest magnitude of the symmetric parts of a stack of
+    matrices (NaN where they are not finite)."""
+    if A.shape[-1] == 2:  # mean -+ radius: no stacking of the pair
         mean = 0.5 * (A[..., 0, 0] + A[..., 1, 1])
         radius = np.hypot(0.5 * (A[..., 0, 0] - A[..., 1, 1]), 0.5 * (A[..., 0, 1] + A[..., 1, 0]))
-        return np.stack([mean - radius, mean + radius], axis=-1)
-    return np.linalg.eigvalsh(0.5 * (A + np.swapaxes(A, -1, -2)))
+        return (mean - radius) / (np.abs(mean) + radius)
+    if not np.isfinite(A).all():
+        return np.full(A.shape[:-2], np.nan)
+    eig = np.linalg.eigvalsh(0.5 * (A + np.swapaxes(A, -1, -2)))  # ascending
+    return eig[..., 0] / np.abs(eig).max(axis=-1)
