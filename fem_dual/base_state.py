@@ -63,8 +63,9 @@ class Predictor:
         J[n:, :n] = self.Minv @ force_jacobian(scene.force_numpy, x0)
         return np.concatenate([v0, self.Minv @ scene.force_numpy(x0)]), J
 
-    def __call__(self, z0: np.ndarray, t: np.ndarray) -> np.ndarray:
-        """(len(t), 2n): the predictor at the times t after the slab's start."""
+    def __call__(self, z0: np.ndarray, t: np.ndarray, end: float = 0.0) -> np.ndarray:
+        """(len(t), 2n): the predictor at the times t after the slab's start (a function of
+        the time alone: the slab's length `end` is not needed)."""
         f0, J = self._rate_and_jacobian(np.asarray(z0, dtype=float))
         eye = np.eye(len(f0))
         out = np.empty((len(t), len(f0)))
@@ -114,10 +115,12 @@ class FlowPredictor:
                              "--base predictor)")
         return states, rates
 
-    def __call__(self, z0: np.ndarray, t: np.ndarray) -> np.ndarray:
-        """(len(t), 2n): the predictor at the times t (in [0, max t]) after the slab's start."""
+    def __call__(self, z0: np.ndarray, t: np.ndarray, end: float) -> np.ndarray:
+        """(len(t), 2n): the predictor at the times t (in [0, end]) after the start of a slab of
+        length `end`. The steps are those of the whole slab whatever part of it t covers (a
+        process of a distributed slab holds the nodes of its cells only)."""
         z0, t = np.asarray(z0, dtype=float), np.asarray(t, dtype=float)
-        end = float(t.max(initial=0.0))
+        end = float(end)
         if not (self._last[0] is not None and self._last[1] == end
                 and np.array_equal(self._last[0], z0)):
             self._last = (z0.copy(), end) + ((np.array([z0]), np.zeros((1, len(z0))))

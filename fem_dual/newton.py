@@ -22,7 +22,8 @@ from fem_dual.problem import SlabProblem
 from fem_dual.solvers import CompiledSlab, SolverOptions, direct_solver
 from fem_dual.stepper import stalled
 
-__all__ = ["NEWTON_DEFAULTS", "NewtonSlabSolver", "NO_PROGRESS_ITS", "difference_step"]
+__all__ = ["NEWTON_DEFAULTS", "NewtonSlabSolver", "NO_PROGRESS_ITS", "RESIDUAL_ROUNDOFF",
+           "difference_step"]
 
 _REASONS = {getattr(PETSc.SNES.ConvergedReason, name): name
             for name in dir(PETSc.SNES.ConvergedReason) if name.isupper()}
@@ -66,6 +67,11 @@ BACKWARD_ROUNDOFF = 8.0  # units in the last place of the dual state (backward_f
 # one converges after 19, at 0.38 of its start after 10).
 NO_PROGRESS_ITS = 3
 NO_PROGRESS_RATIO = 0.1
+# A residual below this times the size of the start state is round-off of its assembly (the
+# initial terms enter it as they are): Newton stops there, where its steps would be noise (a
+# start at rest in an equilibrium took ten steps of 1e-15 and moved the state by 1e-14; with the
+# rk4 base, whose first residual is 1e-8, SNES took ten steps at 1e-16 and ended on noise).
+RESIDUAL_ROUNDOFF = 64 * np.finfo(float).eps
 _R = PETSc.SNES.ConvergedReason
 
 
@@ -242,8 +248,13 @@ class NewtonSlabSolver(CompiledSlab):
             self.x.set(0.0)
         self.snes.setConvergenceHistory(length=1000, reset=True)
         tolerances = self.snes.getTolerances()  # (rtol, atol, stol, max_it)
+        p = self.problem
+        size = max(float(np.abs(p.x0.value).max()),
+                   float(np.abs(p.c["M"].value @ p.v0.value).max()))
+        # the round-off of the residual ends Newton, as on the pointwise path
+        self.snes.setTolerances(atol=max(tolerances[1], RESIDUAL_ROUNDOFF * size,
+                                         0.0 if warm is None else tolerances[0] * warm))
         if warm is not None:
-            self.snes.setTolerances(atol=max(tolerances[1], tolerances[0] * warm))
             # at least one step, whatever the options: a companion left at its partner's
             # solution would estimate no discretisation error at all
             self.snes.setForceIteration(True)
@@ -259,9 +270,6 @@ class NewtonSlabSolver(CompiledSlab):
         history = [float(r) for r in self.snes.getConvergenceHistory()[0]]
         if reason < 0 and self._error:
             raise SolveError(self._error)
-        p = self.problem
-        size = max(float(np.abs(p.x0.value).max()),
-                   float(np.abs(p.c["M"].value @ p.v0.value).max()))
         backward = 0.0
         if reason < 0:  # (collective norms: every rank has the same reason)
             J = self.snes.getJacobian()[0]

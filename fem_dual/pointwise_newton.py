@@ -17,8 +17,8 @@ import numpy as np
 
 from fem_dual.errors import SolveError
 from fem_dual.local_action import BandedLU, LocalAction, _quiet
-from fem_dual.newton import (NEWTON_DEFAULTS, NO_PROGRESS_RATIO, backward_floor,
-                             difference_step, round_off_floor)
+from fem_dual.newton import (NEWTON_DEFAULTS, NO_PROGRESS_RATIO, RESIDUAL_ROUNDOFF,
+                             backward_floor, difference_step, round_off_floor)
 from fem_dual.problem import SlabProblem
 from fem_dual.stepper import stalled
 
@@ -30,11 +30,6 @@ MAX_IT = int(NEWTON_DEFAULTS["snes_max_it"])
 DECREASE = 1e-4  # sufficient decrease of the line search (PETSc's bt: alpha)
 MIN_LAMBDA = 1e-12  # the shortest step the line search tries
 GUESSED_MIN_LAMBDA = 0.05  # ... on a slab whose length the controller guessed (--rtol)
-# A residual below this times the size of the start state is round-off of its assembly (the
-# initial terms enter it as they are): Newton stops there, where its steps would be noise (a
-# start at rest in an equilibrium took ten steps of 1e-15 and moved the state by 1e-14).
-# SNES stops there by the luck of its line search, whose noisy trial residuals do not fall.
-RESIDUAL_ROUNDOFF = 64 * np.finfo(float).eps
 
 
 def _band_norm(band: np.ndarray) -> float:

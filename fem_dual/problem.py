@@ -228,7 +228,7 @@ class SlabProblem:
             self.xbar.value, self.vbar.value = x0, v0
         elif self.predictor is not None:
             n = self.n
-            zbar = self.predictor(np.concatenate([x0, v0]), float(self.dt.value) *
-                                  self._base_times)
+            dt = float(self.dt.value)
+            zbar = self.predictor(np.concatenate([x0, v0]), dt * self._base_times, dt)
             self.xbar.x.array.reshape(-1, n)[:] = zbar[:, :n]
             self.vbar.x.array.reshape(-1, n)[:] = zbar[:, n:]
