@@ -251,8 +251,10 @@ class NewtonSlabSolver(CompiledSlab):
         p = self.problem
         size = max(float(np.abs(p.x0.value).max()),
                    float(np.abs(p.c["M"].value @ p.v0.value).max()))
-        # the round-off of the residual ends Newton, as on the pointwise path
-        self.snes.setTolerances(atol=max(tolerances[1], RESIDUAL_ROUNDOFF * size,
+        # the round-off of the residual ends Newton, as on the pointwise path, unless the user
+        # set snes_atol
+        floor = 0.0 if "snes_atol" in self.options.given else RESIDUAL_ROUNDOFF * size
+        self.snes.setTolerances(atol=max(tolerances[1], floor,
                                          0.0 if warm is None else tolerances[0] * warm))
         if warm is not None:
             # at least one step, whatever the options: a companion left at its partner's

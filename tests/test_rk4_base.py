@@ -123,3 +123,16 @@ def test_rk4_base_in_parallel_equals_serial(assembly):
     assert np.abs(par.x - ser.x).max() <= 1e-11 * scale
     assert np.abs(par.v - ser.v).max() <= 1e-11 * np.abs(ser.v).max()
     assert par.error_estimate == pytest.approx(ser.error_estimate, rel=1e-3)
+
+
+def test_snes_stops_at_the_residuals_round_off_unless_the_user_sets_atol():
+    """The rk4 base's first residual is ~1e-8: SNES's relative test (1e-13) is out of reach, and
+    it took ten steps at 1e-16; the absolute round-off test of the pointwise path ends it."""
+    common = dict(T=4, slabs=2, cells=4, degree=4, base="rk4", staging="off")
+    ours = run(RunConfig.create("curl3d", assembly="forms", **common))
+    pointwise = run(RunConfig.create("curl3d", assembly="pointwise", **common))
+    users = run(RunConfig.create("curl3d", petsc={"snes_atol": "0"}, **common))
+    assert ours.solver["newton_iterations"] == pointwise.solver["newton_iterations"]
+    assert max(ours.solver["newton_iterations"]) <= 2
+    assert min(users.solver["newton_iterations"]) > 2  # the user's atol = 0 holds
+    assert np.abs(ours.x - pointwise.x).max() <= 1e-12 * np.abs(pointwise.x).max()
