@@ -136,3 +136,23 @@ def test_snes_stops_at_the_residuals_round_off_unless_the_user_sets_atol():
     assert max(ours.solver["newton_iterations"]) <= 2
     assert min(users.solver["newton_iterations"]) > 2  # the user's atol = 0 holds
     assert np.abs(ours.x - pointwise.x).max() <= 1e-12 * np.abs(pointwise.x).max()
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("case", [
+    ("force", {"F": "1"}, dict(x0="1", v0="0", base="rk4")),  # the rk4 base is the motion
+    ("curl3d", None, dict(x0="1,0,0")),  # at rest in an equilibrium
+    ("force", {"F": "1+exp(-100*x*x)"}, dict(x0="0", v0="1", T=4, slabs=4, base="rk4"))])
+def test_forms_path_with_no_newton_step_has_its_jacobian(case):
+    """A slab that starts at the residual's round-off takes no SNES step: the estimate's
+    tangent and extra Newton step need the Jacobian at that state (it was never assembled:
+    'Not for unassembled matrix', or held an earlier slab's). Both paths agree."""
+    from mpi4py import MPI
+
+    scene, params, extra = case
+    common = dict(dict(T=2, cells=4, degree=2, staging="off"), **extra)
+    forms = run(RunConfig.create(scene, params, assembly="forms", **common), MPI.COMM_WORLD)
+    pointwise = run(RunConfig.create(scene, params, assembly="pointwise", **common))
+    assert forms.status == "ok" and 0 in forms.solver["newton_iterations"]
+    assert np.abs(forms.x - pointwise.x).max() <= 1e-12 * max(1.0, np.abs(pointwise.x).max())
+    assert forms.error_estimate == pytest.approx(pointwise.error_estimate, rel=1e-3, abs=1e-14)
