@@ -38,8 +38,9 @@ from fem_dual.problem import SlabProblem
 from fem_dual.recovery import VertexSampler, VertexValues
 from fem_dual.solvers import LinearSlabSolver, solver_prefix
 from fem_dual.superposition import Superposition
-from fem_dual.stepper import (ESTIMATE_SAFETY, ROUNDOFF_REL, ErrorWeights, SlabEstimate,
-                              initial_fraction, motion_rate, step_factor, step_factors)
+from fem_dual.stepper import (ESTIMATE_SAFETY, ROUNDOFF_REL, VOLUME_TOL, ErrorWeights,
+                              SlabEstimate, initial_fraction, motion_rate, step_factor,
+                              step_factors, volume_defect)
 from meshes import SlabSchedule
 
 __all__ = ["RunResult", "Simulation", "AcceptedSlab", "run"]
@@ -650,6 +651,29 @@ def _judge(vals: VertexValues, companion: VertexValues, algebraic: Optional[np.n
     return "accept", err_local, "", slab
 
 
+def _volume_kept(comm: MPI.Comm, sim: Simulation, dt: float,
+                 err: Optional[float]) -> Tuple[str, Optional[float], str]:
+    """(action, err, reason) of a nonlinear slab the estimate accepts: still "accept" if its
+    exact slab tangent preserves phase-space volume within stepper.VOLUME_TOL, else "retry"
+    (the slab does not follow the motion, and the companion may miss it too). Slabs without
+    exact tangents (PETSc SNES on forms) are not judged, nor slabs on the predictor base, which
+    damps the fast oscillations the cells do not resolve by design (fem_dual.base_state); on
+    the rk4 base the tangent holds the base (its own change moves the answer by the
+    discretisation error only). Collective."""
+    jacobian = getattr(sim.solver, "slab_jacobian", None)
+    if jacobian is None or sim.base == "predictor":  # (it damps fast modes by design)
+        return "accept", err, ""
+    J = jacobian()
+    M = sim.scene.mass_matrix()
+    D = sim.scene.constants().get("D")
+    defect = bcast(comm, volume_defect(J, M, D, dt))  # (each rank holds the slab whole)
+    if defect <= VOLUME_TOL:
+        return "accept", err, ""
+    return "retry", None, (f"the slab map does not keep phase-space volume as the motion does "
+                           f"(det of its tangent off by {defect:.2g}): the cells do not follow "
+                           "a fast or unstable part of the motion, which the estimate cannot see")
+
+
 def _solves(sim: Simulation) -> int:
     """Slab solves of the answer (tangents not counted) or of the companion."""
     if sim.superposition is not None:
@@ -1015,6 +1039,8 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool,
                 _output(config)))
             shared = (("error", None, problem) if problem else verdict[:3]) if root else None
             action, err, reason = bcast(comm, shared)
+            if action == "accept" and not sim.scene.linear:
+                action, err, reason = _volume_kept(comm, sim, dt, err)
         except SolveError as exc:
             action, err, reason = "retry", None, str(exc)
         timings["solve_s"] += time.perf_counter() - t1

@@ -229,6 +229,10 @@ class LocalAction:
         _, self._vertex, counts = np.unique(ends.ravel(), return_inverse=True,
                                             return_counts=True)
         self._vertex_weight = 1.0 / counts
+        # the mean of the one-sided values at each vertex: (vertices, cells * 2)
+        self._vertex_mean = np.zeros((len(counts), 2 * cell_count))
+        self._vertex_mean[self._vertex, np.arange(2 * cell_count)] = self._vertex_weight[
+            self._vertex]
         self._T = T  # (cells, q, 2, nd)
         self._dofs = dofs
 
@@ -236,7 +240,8 @@ class LocalAction:
         self.error: Optional[str] = None  # why the implicit DtP map failed at the state
         self._initial_at: Optional[Tuple[int, np.ndarray]] = None
         self._both_at: Optional[Tuple[int, np.ndarray]] = None  # state of the last evaluation
-        self._tangent_at: Optional[tuple] = None  # (state, LU, Hessian, d grad / d zbar)
+        self._tangent_at: Optional[tuple] = None  # (state, LU, tangent matrix)
+        self._initial_at_m: Optional[tuple] = None  # (M, d initial rows / d z0)
 
     def _pattern(self, upper: list) -> list:
         """The Hessian pairs (K, L) of `upper` whose entries are not zero at random dual states,
@@ -365,45 +370,81 @@ class LocalAction:
         base state that is a function of time (the flow predictor's) is held: it moves the
         answer only by the discretisation error, so the tangent with it held is the slab
         map's to that order."""
-        p = self.problem
-        n, bs, cells, nq = p.n, self.bs, len(self.cells), self.nq
         if self.sync():
             raise ValueError(self.error)
+        lu, matrix = self._tangents()
+        return matrix @ np.asarray(dz, dtype=float), lu
+
+    @_quiet
+    def tangent_matrix(self) -> np.ndarray:
+        """d(x, v)/dz0 at the vertices, (vertices, 2n, 2n), of the slab solved at the current
+        state (see vertex_tangent)."""
+        if self.sync():
+            raise ValueError(self.error)
+        return self._tangents()[1]
+
+    def _tangents(self) -> Tuple["BandedLU", np.ndarray]:
+        """(factors, tangent matrix) at the current state, kept while it is current."""
+        p = self.problem
         key = (p.version, p.w.x.array)
         if (self._tangent_at is None or self._tangent_at[0] != key[0]
                 or not np.array_equal(self._tangent_at[1], key[1])):
-            out = self._held_evaluation()
-            if out is None:
-                _, band = self.residual_and_jacobian()
-                out = self._out_both.reshape(cells, nq, -1)
-            else:
-                band = self._band(out)
-            Gz = (None if self._base_derivative is None else
-                  self._base_derivative(self.cells).reshape(cells, nq, 2 * bs, 2 * n))
-            self._tangent_at = (key[0], key[1].copy(), self.factor(band), self._hessian(out), Gz)
-        _, _, lu, hessian, Gz = self._tangent_at
-        dg_base = (Gz @ dz if p.base == "start" else  # (cells, q, 2 bs)
-                   np.zeros((cells, nq, 2 * bs)))
-        r = np.matmul(self._Tg, dg_base.reshape(cells, nq * 2, bs))
-        rhs = np.bincount(self._r_rows, r.ravel()[self._r_keep], minlength=self.size)
-        saved = p.x0.value.copy(), p.v0.value.copy()
-        try:  # the initial terms are linear in (x0, v0)
-            p.x0.value, p.v0.value = dz[:n], dz[n:]
-            rhs[self.start_rows] += self._initial(self.cells[:1])[0, 0]
-        finally:
-            p.x0.value, p.v0.value = saved
-        dw = -lu.solve(rhs)
-        full = np.zeros(p.w.x.array.shape)
+            self._tangent_at = (key[0], key[1].copy()) + self._tangent_matrix()
+        return self._tangent_at[2], self._tangent_at[3]
+
+    def _tangent_matrix(self) -> Tuple["BandedLU", np.ndarray]:
+        """(the Jacobian's factors, d(x, v)/dz0 at the vertices: (vertices, 2n, 2n)) at the
+        current state, for all 2n unit changes of the start state at once (one banded solve
+        with 2n right-hand sides: a slab's tangents along the estimate's error and the probe
+        direction then cost a product each)."""
+        p = self.problem
+        n, bs, cells, nq = p.n, self.bs, len(self.cells), self.nq
+        K = 2 * n
+        out = self._held_evaluation()
+        if out is None:
+            _, band = self.residual_and_jacobian()
+            out = self._out_both.reshape(cells, nq, -1)
+        else:
+            band = self._band(out)
+        lu, hessian = self.factor(band), self._hessian(out)
+        if p.base == "start" and self._base_derivative is not None:  # d grad / d zbar
+            dg_base = self._base_derivative(self.cells).reshape(cells, nq, 2 * bs, K)
+        else:
+            dg_base = np.zeros((cells, nq, 2 * bs, K))
+        r = np.matmul(self._Tg, dg_base.reshape(cells, nq * 2, bs * K))  # (cells, nd, bs K)
+        rows = r.reshape(-1, K)[self._r_keep]
+        rhs = np.column_stack([np.bincount(self._r_rows, rows[:, k], minlength=self.size)
+                               for k in range(K)])
+        rhs[self.start_rows] += self._initial_tangent()
+        dw = -lu.solve(rhs)  # (size, K)
+        full = np.zeros((p.w.x.array.size, K))
         full[self.free_global] = dw
-        cell_dw = full.reshape(-1, bs)[self._dofs]  # (cells, nd, bs)
-        dZ = np.einsum("eqka,eac->eqkc", self._T, cell_dw).reshape(cells, nq, 2 * bs)
-        dg = np.einsum("eqij,eqj->eqi", hessian, dZ) + dg_base
-        dm = self._sign * np.matmul(self._Tg, dg.reshape(cells, nq * 2, bs))[:, :2, :2 * n]
-        dm[..., n:] = dm[..., n:] @ np.linalg.inv(p.c["M"].value).T
-        one_sided = dm.reshape(cells * 2, 2 * n) * self._vertex_weight[self._vertex][:, None]
-        vertices = np.zeros((len(self._vertex_weight), 2 * n))
-        np.add.at(vertices, self._vertex, one_sided)
-        return vertices, lu
+        cell_dw = full.reshape(-1, bs, K)[self._dofs]  # (cells, nd, bs, K)
+        dZ = np.einsum("eqka,eacK->eqkcK", self._T, cell_dw).reshape(cells, nq, 2 * bs, K)
+        dg = np.einsum("eqij,eqjK->eqiK", hessian, dZ) + dg_base
+        dm = np.matmul(self._Tg, dg.reshape(cells, nq * 2, bs * K)).reshape(cells, -1, bs, K)
+        dm = self._sign[..., None] * dm[:, :2, :K]  # (cells, 2, 2n, K): x then M v
+        dm[:, :, n:] = np.einsum("ij,ecjK->eciK", np.linalg.inv(p.c["M"].value), dm[:, :, n:])
+        vertices = self._vertex_mean @ dm.reshape(cells * 2, K * K)
+        return lu, vertices.reshape(-1, K, K)
+
+    def _initial_tangent(self) -> np.ndarray:
+        """d/dz0 of the initial terms' rows (start rows, 2n): linear in (x0, v0), with M as
+        the only constant (kept while M is)."""
+        p = self.problem
+        M = p.c["M"].value
+        if self._initial_at_m is None or not np.array_equal(self._initial_at_m[0], M):
+            n = p.n
+            columns = []
+            saved = p.x0.value.copy(), p.v0.value.copy()
+            try:
+                for unit in np.eye(2 * n):
+                    p.x0.value, p.v0.value = unit[:n], unit[n:]
+                    columns.append(self._initial(self.cells[:1])[0, 0].copy())
+            finally:
+                p.x0.value, p.v0.value = saved
+            self._initial_at_m = (M.copy(), np.column_stack(columns))
+        return self._initial_at_m[1]
 
     def _blocks(self, H: np.ndarray) -> np.ndarray:
         """B[e, (a, b), pair] from the nonzero Hessian entries H (cells, q, pairs)."""

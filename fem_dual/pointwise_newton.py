@@ -248,6 +248,14 @@ class PointwiseNewtonSolver(_PointwiseSolver):
         except ValueError as exc:
             raise SolveError(str(exc)) from None
 
+    def slab_jacobian(self) -> np.ndarray:
+        """d z_end / d z0 (2n, 2n) of the converged slab, exactly (see exact_tangent)."""
+        self.local.set_state(self.x)
+        try:
+            return self.local.tangent_matrix()[-1]
+        except ValueError as exc:
+            raise SolveError(str(exc)) from None
+
     def newton_step(self) -> None:
         """Leave the problem at the converged state plus one more Newton step, w - J^-1 R(w):
         how far the answer would still move is its algebraic error. `restore(z0)` goes back."""

@@ -269,3 +269,39 @@ def test_equilibria_are_answered(scene, params, x0):
     (residual 0 after 0 iterations)"."""
     r = run(RunConfig.create(scene, params, x0=x0))
     assert r.status == "ok" and _actual(r) <= 1e-14 and r.error_estimate <= 1e-11
+
+
+# Near curl3d's unstable equilibrium x = (1e3, 0, 0) a perturbation of 1e-9 grows 3000-fold per
+# 0.25 of time. Slabs of 8 cells missed the growth, and so did their degree p + 1 companion: the
+# run ended ok with an estimate of 5e-8 against a true error of 1e9. The slab tangent's
+# phase-space volume (det = 1 for any force F(x)) shows the slab does not follow the motion.
+UNSTABLE = dict(x0="1e3,0,0", v0="0,1e-9,0", cells=8, degree=3)
+
+
+@pytest.mark.parametrize("base", ["auto", "start"])
+def test_a_slab_that_misses_an_unstable_motion_is_not_vouched_for(base):
+    try:
+        r = run(RunConfig.create("curl3d", T=0.5, slabs=2, base=base, **UNSTABLE))
+    except SolveError:  # (the start base: refused, exit 3)
+        pass
+    else:  # (the predictor base: shorter slabs followed it)
+        assert len(r.slab_lengths) > 2
+        assert _actual(r) <= r.error_estimate
+    with pytest.raises(SolveError):  # over T = 1 the motion outgrows what it can vouch for
+        run(RunConfig.create("curl3d", T=1, slabs=4, base=base, **UNSTABLE))
+
+
+def test_volume_defect_of_exact_flows():
+    from scipy.linalg import expm
+
+    from fem_dual.stepper import volume_defect
+
+    rng = np.random.default_rng(4)
+    n = 3
+    M = np.diag([1.0, 2.0, 0.5])
+    K, D = rng.standard_normal((n, n)), np.diag([0.3, 0.1, 0.2])
+    A = np.block([[np.zeros((n, n)), np.eye(n)], [-np.linalg.solve(M, K), -np.linalg.solve(M, D)]])
+    assert volume_defect(expm(A * 0.7), M, D, 0.7) < 1e-12
+    A[n:, n:] = 0.0
+    assert volume_defect(expm(A * 0.7), M, None, 0.7) < 1e-12
+    assert volume_defect(0.5 * np.eye(2 * n), M, None, 0.7) > 0.9

@@ -142,7 +142,7 @@ def test_snes_stops_at_the_residuals_round_off_unless_the_user_sets_atol():
 @pytest.mark.parametrize("case", [
     ("force", {"F": "1"}, dict(x0="1", v0="0", base="rk4")),  # the rk4 base is the motion
     ("curl3d", None, dict(x0="1,0,0")),  # at rest in an equilibrium
-    ("force", {"F": "1+exp(-100*x*x)"}, dict(x0="0", v0="1", T=4, slabs=4, base="rk4"))])
+    ("force", {"F": "1+exp(-10*x*x)"}, dict(x0="0", v0="1", T=4, slabs=4, base="rk4"))])
 def test_forms_path_with_no_newton_step_has_its_jacobian(case):
     """A slab that starts at the residual's round-off takes no SNES step: the estimate's
     tangent and extra Newton step need the Jacobian at that state (it was never assembled:
