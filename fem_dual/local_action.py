@@ -242,6 +242,7 @@ class LocalAction:
         self._both_at: Optional[Tuple[int, np.ndarray]] = None  # state of the last evaluation
         self._tangent_at: Optional[tuple] = None  # (state, LU, tangent matrix)
         self._initial_at_m: Optional[tuple] = None  # (M, d initial rows / d z0)
+        self._minv_at: Optional[tuple] = None  # (M, M^-1)
 
     def _pattern(self, upper: list) -> list:
         """The Hessian pairs (K, L) of `upper` whose entries are not zero at random dual states,
@@ -407,26 +408,35 @@ class LocalAction:
         else:
             band = self._band(out)
         lu, hessian = self.factor(band), self._hessian(out)
+        rhs = np.zeros((self.size, K))
+        dg_base = None
         if p.base == "start" and self._base_derivative is not None:  # d grad / d zbar
             dg_base = self._base_derivative(self.cells).reshape(cells, nq, 2 * bs, K)
-        else:
-            dg_base = np.zeros((cells, nq, 2 * bs, K))
-        r = np.matmul(self._Tg, dg_base.reshape(cells, nq * 2, bs * K))  # (cells, nd, bs K)
-        rows = r.reshape(-1, K)[self._r_keep]
-        rhs = np.column_stack([np.bincount(self._r_rows, rows[:, k], minlength=self.size)
-                               for k in range(K)])
+            r = np.matmul(self._Tg, dg_base.reshape(cells, nq * 2, bs * K))  # (cells, nd, bs K)
+            rows = r.reshape(-1, K)[self._r_keep]
+            for k in range(K):
+                rhs[:, k] = np.bincount(self._r_rows, rows[:, k], minlength=self.size)
         rhs[self.start_rows] += self._initial_tangent()
         dw = -lu.solve(rhs)  # (size, K)
         full = np.zeros((p.w.x.array.size, K))
         full[self.free_global] = dw
         cell_dw = full.reshape(-1, bs, K)[self._dofs]  # (cells, nd, bs, K)
-        dZ = np.einsum("eqka,eacK->eqkcK", self._T, cell_dw).reshape(cells, nq, 2 * bs, K)
-        dg = np.einsum("eqij,eqjK->eqiK", hessian, dZ) + dg_base
+        dZ = np.matmul(self._T.reshape(cells, nq * 2, -1), cell_dw.reshape(cells, -1, bs * K))
+        dg = np.matmul(hessian, dZ.reshape(cells, nq, 2 * bs, K))
+        if dg_base is not None:
+            dg += dg_base
         dm = np.matmul(self._Tg, dg.reshape(cells, nq * 2, bs * K)).reshape(cells, -1, bs, K)
         dm = self._sign[..., None] * dm[:, :2, :K]  # (cells, 2, 2n, K): x then M v
-        dm[:, :, n:] = np.einsum("ij,ecjK->eciK", np.linalg.inv(p.c["M"].value), dm[:, :, n:])
+        dm[:, :, n:] = np.matmul(self._Minv(), dm[:, :, n:])
         vertices = self._vertex_mean @ dm.reshape(cells * 2, K * K)
         return lu, vertices.reshape(-1, K, K)
+
+    def _Minv(self) -> np.ndarray:
+        """M^-1 (kept while M is)."""
+        M = self.problem.c["M"].value
+        if self._minv_at is None or not np.array_equal(self._minv_at[0], M):
+            self._minv_at = (M.copy(), np.linalg.inv(M))
+        return self._minv_at[1]
 
     def _initial_tangent(self) -> np.ndarray:
         """d/dz0 of the initial terms' rows (start rows, 2n): linear in (x0, v0), with M as
