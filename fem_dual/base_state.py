@@ -14,8 +14,8 @@ quasi-static state z0 - J^-1 f(z0) (a stiff spring at the position where it bala
 forces), so unresolved modes are not forced.
 
 The flow predictor ("rk4") is for motions that are not stiff: classical Runge-Kutta from the
-start, (p + 1) steps per cell, read at the base state's nodes by cubic Hermites. Near the motion to O(h^4),
-it leaves the dual fields only a small correction, so Newton converges from the zero dual state
+start, (p + 1) steps per cell, read at the base state's nodes by cubic Hermites. Near the motion
+to O(h^4), it leaves the dual fields only a small correction, so Newton converges from the zero dual state
 on slabs several times longer than from the constant start state (curl3d T = 8 at rtol 1e-6:
 2 slabs of 4 against 8 slabs and 5 failed Newtons), and the correction's discretisation error
 is small with it.
@@ -75,7 +75,7 @@ class Predictor:
 
 
 class FlowPredictor:
-    """zbar(t): classical RK4 of z' = f(z) from z0 in `steps` equal steps over [0, max t],
+    """zbar(t): classical RK4 of z' = f(z) from z0 in `steps` equal steps over the slab,
     read at the times t by the cubic Hermite of the step ends (O(h^4), as the steps). The last
     run is kept: the error companion (nodes of another degree on the same slab) and the slab
     loop's repeated starts (tangents, Newton probes) read it again without stepping."""

@@ -241,8 +241,7 @@ class LocalAction:
         self._initial_at: Optional[Tuple[int, np.ndarray]] = None
         self._both_at: Optional[Tuple[int, np.ndarray]] = None  # state of the last evaluation
         self._tangent_at: Optional[tuple] = None  # (state, LU, tangent matrix)
-        self._initial_at_m: Optional[tuple] = None  # (M, d initial rows / d z0)
-        self._minv_at: Optional[tuple] = None  # (M, M^-1)
+        self._mass_at: Optional[tuple] = None  # (M, M^-1, d initial rows / d z0)
 
     def _pattern(self, upper: list) -> list:
         """The Hessian pairs (K, L) of `upper` whose entries are not zero at random dual states,
@@ -396,8 +395,8 @@ class LocalAction:
     def _tangent_matrix(self) -> Tuple["BandedLU", np.ndarray]:
         """(the Jacobian's factors, d(x, v)/dz0 at the vertices: (vertices, 2n, 2n)) at the
         current state, for all 2n unit changes of the start state at once (one banded solve
-        with 2n right-hand sides: a slab's tangents along the estimate's error and the probe
-        direction then cost a product each)."""
+        with 2n right-hand sides: the tangent along the estimate's error and the volume check
+        of fem_dual.driver then cost a product and a determinant)."""
         p = self.problem
         n, bs, cells, nq = p.n, self.bs, len(self.cells), self.nq
         K = 2 * n
@@ -416,7 +415,8 @@ class LocalAction:
             rows = r.reshape(-1, K)[self._r_keep]
             for k in range(K):
                 rhs[:, k] = np.bincount(self._r_rows, rows[:, k], minlength=self.size)
-        rhs[self.start_rows] += self._initial_tangent()
+        Minv, initial = self._mass_derived()
+        rhs[self.start_rows] += initial
         dw = -lu.solve(rhs)  # (size, K)
         full = np.zeros((p.w.x.array.size, K))
         full[self.free_global] = dw
@@ -427,23 +427,16 @@ class LocalAction:
             dg += dg_base
         dm = np.matmul(self._Tg, dg.reshape(cells, nq * 2, bs * K)).reshape(cells, -1, bs, K)
         dm = self._sign[..., None] * dm[:, :2, :K]  # (cells, 2, 2n, K): x then M v
-        dm[:, :, n:] = np.matmul(self._Minv(), dm[:, :, n:])
+        dm[:, :, n:] = np.matmul(Minv, dm[:, :, n:])
         vertices = self._vertex_mean @ dm.reshape(cells * 2, K * K)
         return lu, vertices.reshape(-1, K, K)
 
-    def _Minv(self) -> np.ndarray:
-        """M^-1 (kept while M is)."""
-        M = self.problem.c["M"].value
-        if self._minv_at is None or not np.array_equal(self._minv_at[0], M):
-            self._minv_at = (M.copy(), np.linalg.inv(M))
-        return self._minv_at[1]
-
-    def _initial_tangent(self) -> np.ndarray:
-        """d/dz0 of the initial terms' rows (start rows, 2n): linear in (x0, v0), with M as
-        the only constant (kept while M is)."""
+    def _mass_derived(self) -> Tuple[np.ndarray, np.ndarray]:
+        """(M^-1, d/dz0 of the initial terms' rows: (start rows, 2n)), kept while M is: the
+        initial terms are linear in (x0, v0), with M their only constant."""
         p = self.problem
         M = p.c["M"].value
-        if self._initial_at_m is None or not np.array_equal(self._initial_at_m[0], M):
+        if self._mass_at is None or not np.array_equal(self._mass_at[0], M):
             n = p.n
             columns = []
             saved = p.x0.value.copy(), p.v0.value.copy()
@@ -453,8 +446,8 @@ class LocalAction:
                     columns.append(self._initial(self.cells[:1])[0, 0].copy())
             finally:
                 p.x0.value, p.v0.value = saved
-            self._initial_at_m = (M.copy(), np.column_stack(columns))
-        return self._initial_at_m[1]
+            self._mass_at = (M.copy(), np.linalg.inv(M), np.column_stack(columns))
+        return self._mass_at[1], self._mass_at[2]
 
     def _blocks(self, H: np.ndarray) -> np.ndarray:
         """B[e, (a, b), pair] from the nonzero Hessian entries H (cells, q, pairs)."""
