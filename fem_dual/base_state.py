@@ -26,8 +26,8 @@ from typing import Dict
 
 import numpy as np
 
-__all__ = ["Predictor", "FlowPredictor", "predictor", "force_jacobian", "stiff_at_start",
-           "STIFF_RATIO"]
+__all__ = ["Predictor", "FlowPredictor", "predictor", "force_jacobian", "grows_within",
+           "stiff_at_start", "STIFF_RATIO"]
 
 STIFF_RATIO = 5.0  # fastest linearised frequency / the start's rate beyond which it is stiff
 
@@ -148,6 +148,15 @@ def predictor(scene, base: str, steps: int):
     """The predictor of a base state that is a function of time ("predictor", "rk4"; `steps`:
     the rk4 steps per slab)."""
     return FlowPredictor(scene, steps) if base == "rk4" else Predictor(scene)
+
+
+def grows_within(scene, x0: np.ndarray, dt: float) -> bool:
+    """Whether the motion linearised at x0 has a mode that grows by more than a factor e over
+    a time dt: an eigenvalue lambda = sqrt(mu) of the first-order system, mu an eigenvalue of
+    M^-1 dF/dx, with Re(lambda) dt > 1."""
+    Minv = np.linalg.inv(scene.mass_matrix())
+    mu = np.linalg.eigvals(Minv @ force_jacobian(scene.force_numpy, x0))
+    return bool(np.sqrt(mu.astype(complex)).real.max(initial=0.0) * dt > 1.0)
 
 
 def stiff_at_start(scene, x0: np.ndarray, v0: np.ndarray) -> bool:
