@@ -345,7 +345,7 @@ class Simulation:
             first = (start.solver.histories[-1][:1] if start is not None
                      and not self.scene.linear and not self.kronecker else [])
             if first and first[0] > 0:  # (no history: SNES options without a residual norm)
-                self.problem.w.interpolate(start.problem.w)
+                self.problem.take_dual_state(start.problem)
                 self.solver.solve(warm=first[0])
             else:
                 self.solver.solve()
@@ -455,6 +455,8 @@ class Simulation:
         would not show it. Collective; call it right after the slab was solved."""
         if self.scene.linear:
             return None
+        if self.recovery == "momentum" and getattr(self.solver, "exact_tangents", False):
+            return self.solver.newton_change()  # (every rank holds the slab whole)
         self.solver.newton_step()
         moved = self._sample_and_restore(z0)
         if moved is None:

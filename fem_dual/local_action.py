@@ -310,10 +310,10 @@ class LocalAction:
         if self.sync():
             return np.full(self.size, np.nan), None
         out = self._both.into(self.cells, self._out_both)
-        self._both_at = (self.problem.version, self.problem.w.x.array.copy())
         cells, nq, bs = len(self.cells), self.nq, self.bs
         out = out.reshape(cells, nq, -1)
         R = self._residual(np.ascontiguousarray(out[..., :2 * bs]))
+        self._both_at = (self.problem.version, self.problem.w.x.array.copy(), R)
         return R, self._band(out)
 
     def _band(self, out: np.ndarray) -> np.ndarray:
@@ -342,13 +342,14 @@ class LocalAction:
 
     # -- the exact tangent of the slab map ---------------------------------------------------
 
-    def _held_evaluation(self) -> Optional[np.ndarray]:
-        """The band of the Jacobian at the current state if the last evaluation was there."""
+    def _held_evaluation(self) -> Optional[Tuple[np.ndarray, np.ndarray]]:
+        """(the evaluation (cells, q, columns), R) at the current state if the last evaluation
+        was there."""
         p = self.problem
         if self._both_at is None or self._both_at[0] != p.version or not np.array_equal(
                 self._both_at[1], p.w.x.array):
             return None
-        return self._out_both.reshape(len(self.cells), self.nq, -1)
+        return self._out_both.reshape(len(self.cells), self.nq, -1), self._both_at[2]
 
     def _hessian(self, out: np.ndarray) -> np.ndarray:
         """The full symmetric Hessian of the density at the points: (cells, q, 2 bs, 2 bs)."""
@@ -372,7 +373,7 @@ class LocalAction:
         map's to that order."""
         if self.sync():
             raise ValueError(self.error)
-        lu, matrix = self._tangents()
+        lu, matrix, _ = self._tangents()
         return matrix @ np.asarray(dz, dtype=float), lu
 
     @_quiet
@@ -383,31 +384,43 @@ class LocalAction:
             raise ValueError(self.error)
         return self._tangents()[1]
 
-    def _tangents(self) -> Tuple["BandedLU", np.ndarray]:
-        """(factors, tangent matrix) at the current state, kept while it is current."""
+    @_quiet
+    def newton_change(self) -> np.ndarray:
+        """How far the vertex values (vertices, 2n) of the current state would move with one
+        more Newton step, -J^-1 R, to first order in the step (the momenta's derivative, as
+        the tangents'): the algebraic error of a solved slab, from the tangents' solve."""
+        if self.sync():
+            raise ValueError(self.error)
+        return self._tangents()[2]
+
+    def _tangents(self) -> Tuple["BandedLU", np.ndarray, np.ndarray]:
+        """(factors, tangent matrix, Newton change) at the current state, kept while it is
+        current."""
         p = self.problem
         key = (p.version, p.w.x.array)
         if (self._tangent_at is None or self._tangent_at[0] != key[0]
                 or not np.array_equal(self._tangent_at[1], key[1])):
             self._tangent_at = (key[0], key[1].copy()) + self._tangent_matrix()
-        return self._tangent_at[2], self._tangent_at[3]
+        return self._tangent_at[2:]
 
-    def _tangent_matrix(self) -> Tuple["BandedLU", np.ndarray]:
-        """(the Jacobian's factors, d(x, v)/dz0 at the vertices: (vertices, 2n, 2n)) at the
-        current state, for all 2n unit changes of the start state at once (one banded solve
-        with 2n right-hand sides: the tangent along the estimate's error and the volume check
-        of fem_dual.driver then cost a product and a determinant)."""
+    def _tangent_matrix(self) -> Tuple["BandedLU", np.ndarray, np.ndarray]:
+        """(the Jacobian's factors, d(x, v)/dz0 at the vertices: (vertices, 2n, 2n), the
+        vertex change of one more Newton step: (vertices, 2n)) at the current state, for all 2n
+        unit changes of the start state and the Newton step at once (one banded solve with
+        2n + 1 right-hand sides: the tangent along the estimate's error, the volume check of
+        fem_dual.driver and the algebraic error then cost a product and a determinant)."""
         p = self.problem
         n, bs, cells, nq = p.n, self.bs, len(self.cells), self.nq
         K = 2 * n
-        out = self._held_evaluation()
-        if out is None:
-            _, band = self.residual_and_jacobian()
+        held = self._held_evaluation()
+        if held is None:
+            R, band = self.residual_and_jacobian()
             out = self._out_both.reshape(cells, nq, -1)
         else:
-            band = self._band(out)
+            (out, R), band = held, self._band(held[0])
         lu, hessian = self.factor(band), self._hessian(out)
-        rhs = np.zeros((self.size, K))
+        rhs = np.zeros((self.size, K + 1))  # d R / d z0, then R (the Newton step's)
+        rhs[:, K] = R
         dg_base = None
         if p.base == "start" and self._base_derivative is not None:  # d grad / d zbar
             dg_base = self._base_derivative(self.cells).reshape(cells, nq, 2 * bs, K)
@@ -416,20 +429,21 @@ class LocalAction:
             for k in range(K):
                 rhs[:, k] = np.bincount(self._r_rows, rows[:, k], minlength=self.size)
         Minv, initial = self._mass_derived()
-        rhs[self.start_rows] += initial
-        dw = -lu.solve(rhs)  # (size, K)
-        full = np.zeros((p.w.x.array.size, K))
+        rhs[self.start_rows, :K] += initial
+        K1 = K + 1
+        dw = -lu.solve(rhs)  # (size, K + 1)
+        full = np.zeros((p.w.x.array.size, K1))
         full[self.free_global] = dw
-        cell_dw = full.reshape(-1, bs, K)[self._dofs]  # (cells, nd, bs, K)
-        dZ = np.matmul(self._T.reshape(cells, nq * 2, -1), cell_dw.reshape(cells, -1, bs * K))
-        dg = np.matmul(hessian, dZ.reshape(cells, nq, 2 * bs, K))
+        cell_dw = full.reshape(-1, bs, K1)[self._dofs]  # (cells, nd, bs, K + 1)
+        dZ = np.matmul(self._T.reshape(cells, nq * 2, -1), cell_dw.reshape(cells, -1, bs * K1))
+        dg = np.matmul(hessian, dZ.reshape(cells, nq, 2 * bs, K1))
         if dg_base is not None:
-            dg += dg_base
-        dm = np.matmul(self._Tg, dg.reshape(cells, nq * 2, bs * K)).reshape(cells, -1, bs, K)
-        dm = self._sign[..., None] * dm[:, :2, :K]  # (cells, 2, 2n, K): x then M v
+            dg[..., :K] += dg_base
+        dm = np.matmul(self._Tg, dg.reshape(cells, nq * 2, bs * K1)).reshape(cells, -1, bs, K1)
+        dm = self._sign[..., None] * dm[:, :2, :K]  # (cells, 2, 2n, K + 1): x then M v
         dm[:, :, n:] = np.matmul(Minv, dm[:, :, n:])
-        vertices = self._vertex_mean @ dm.reshape(cells * 2, K * K)
-        return lu, vertices.reshape(-1, K, K)
+        vertices = (self._vertex_mean @ dm.reshape(cells * 2, K * K1)).reshape(-1, K, K1)
+        return lu, np.ascontiguousarray(vertices[..., :K]), vertices[..., K].copy()
 
     def _mass_derived(self) -> Tuple[np.ndarray, np.ndarray]:
         """(M^-1, d/dz0 of the initial terms' rows: (start rows, 2n)), kept while M is: the

@@ -256,6 +256,16 @@ class PointwiseNewtonSolver(_PointwiseSolver):
         except ValueError as exc:
             raise SolveError(str(exc)) from None
 
+    def newton_change(self) -> np.ndarray:
+        """How far the vertex values (vertices, 2n) of the converged slab would move with one
+        more Newton step, to first order in the step, from the exact tangents' solve (no
+        displaced state to sample and restore)."""
+        self.local.set_state(self.x)
+        try:
+            return self.local.newton_change()
+        except ValueError as exc:
+            raise SolveError(str(exc)) from None
+
     def newton_step(self) -> None:
         """Leave the problem at the converged state plus one more Newton step, w - J^-1 R(w):
         how far the answer would still move is its algebraic error. `restore(z0)` goes back."""

@@ -136,3 +136,55 @@ def test_exact_tangent_of_the_slab_map(scene, base):
     richardson = (4 * central[5e-4] - central[1e-3]) / 3
     assert np.abs(exact - richardson).max() <= 1e-10 * np.abs(exact).max()
     sim.close()
+
+
+@pytest.mark.serial
+@pytest.mark.parametrize("scene", ["curl3d", "curl2d", "curl2d-lifted"])
+def test_newton_change_is_the_sampled_newton_step_to_second_order(scene):
+    """The algebraic error from the tangents' solve (the vertex values' change of one more
+    Newton step, linearised) equals the sampled change of that step, displaced dual state
+    and implicit DtP map included, up to the square of the step: halving the distance from
+    the solution quarters the difference."""
+    from fem_dual.driver import Simulation
+
+    s = get_scene(scene)()
+    config = RunConfig.create(s, T=1.0, cells=4, degree=4, slabs=1, staging="off",
+                              reference="none")
+    sim = Simulation.for_config(config)
+    sim.begin(config)
+    z0 = np.concatenate([config.x0, config.v0]) + 0.05
+    sim.solve_slab(z0, 0.0, 0.7)
+    solver = sim.solver
+    solution = solver.x.copy()
+    direction = np.random.default_rng(5).standard_normal(solution.size)
+    gaps = []
+    for eps in (1e-4, 5e-5):
+        solver.x = solution + eps * np.abs(solution).max() * direction
+        solver.local.set_state(solver.x)
+        linear = solver.newton_change()
+        before = sim.sampler()
+        solver._solved_residual = solver._lu = None  # the step with J at the displaced state
+        solver.newton_step()
+        moved = sim.sampler()
+        solver.restore(z0)
+        sampled = np.hstack([moved.x - before.x, moved.v - before.v])
+        assert np.abs(linear - sampled).max() <= 0.01 * np.abs(sampled).max()
+        gaps.append(np.abs(linear - sampled).max())
+    assert np.log2(gaps[0] / gaps[1]) > 1.8, gaps
+    sim.close()
+
+
+@pytest.mark.serial
+def test_companion_takes_the_answers_dual_state_as_interpolation_does():
+    """The companion's warm start (degree p into p + 1, cell by cell) equals DOLFINx's
+    interpolation to round-off."""
+    s = get_scene("curl3d")()
+    answer = SlabProblem(s, 3, 5, MPI.COMM_SELF, "start")
+    companion = SlabProblem(s, 4, 5, MPI.COMM_SELF, "start", mesh=answer.mesh)
+    answer.w.x.array[:] = np.random.default_rng(2).standard_normal(answer.w.x.array.size)
+    companion.take_dual_state(answer)
+    fast = companion.w.x.array.copy()
+    companion.w.x.array[:] = 0.0
+    companion.w.interpolate(answer.w)
+    assert np.array_equal(fast, companion.w.x.array) or np.abs(
+        fast - companion.w.x.array).max() <= 1e-14 * np.abs(fast).max()

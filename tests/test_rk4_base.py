@@ -87,7 +87,7 @@ def test_flow_predictor_is_fourth_order_and_read_again_without_stepping():
     pred = FlowPredictor(scene, 8)
     first = pred(z0, t, 2.0)
     calls = []
-    pred._rate = lambda z, f=pred._rate: calls.append(1) or f(z)
+    pred._run = lambda z, end, f=pred._run: calls.append(1) or f(z, end)
     again = pred(z0, np.linspace(0.0, 2.0, 5), 2.0)  # other nodes, same slab: no stepping
     assert not calls and np.allclose(again, first[::2], rtol=0, atol=1e-15)
 
