@@ -85,6 +85,11 @@ class FlowPredictor:
         self.n = scene.n
         self.steps = steps
         self.Minv = np.linalg.inv(scene.mass_matrix())
+        self.forget()
+
+    def forget(self) -> None:
+        """Drop the kept run: a new run of the slab loop steps again (a timed repeat of the
+        same run must not read the last one's)."""
         self._last: tuple = (None, None, None, None)
         self._reads: Dict[bytes, np.ndarray] = {}  # the run read at given times
 

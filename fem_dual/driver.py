@@ -314,6 +314,9 @@ class Simulation:
                                              else self.modal.scene)
             self.scene = config.scene
         self.solver.reset()
+        forget = getattr(getattr(self.problem, "predictor", None), "forget", None)
+        if forget is not None:  # (shared with the companion)
+            forget()
         if hasattr(self.solver, "patience"):  # Newton: guessed slab lengths give up early
             self.solver.patience = NO_PROGRESS_ITS if config.rtol is not None else None
         self.superposition = None
