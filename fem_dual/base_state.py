@@ -22,7 +22,7 @@ is small with it.
 """
 from __future__ import annotations
 
-from typing import Dict
+from typing import Dict, Tuple
 
 import numpy as np
 
@@ -73,6 +73,10 @@ class Predictor:
             out[i] = z0 + ti * np.linalg.solve(eye - ti * J, f0)
         return out
 
+    def along(self, z0: np.ndarray, fractions: np.ndarray, end: float) -> np.ndarray:
+        """The predictor at the times fractions * end (as FlowPredictor.along)."""
+        return self(z0, fractions * end, end)
+
 
 class FlowPredictor:
     """zbar(t): classical RK4 of z' = f(z) from z0 in `steps` equal steps over the slab,
@@ -85,6 +89,7 @@ class FlowPredictor:
         self.n = scene.n
         self.steps = steps
         self.Minv = np.linalg.inv(scene.mass_matrix())
+        self._weights: Dict[bytes, tuple] = {}  # Hermite weights of given fractions
         self.forget()
 
     def forget(self) -> None:
@@ -127,7 +132,13 @@ class FlowPredictor:
         """(len(t), 2n): the predictor at the times t (in [0, end]) after the start of a slab of
         length `end`. The steps are those of the whole slab whatever part of it t covers (a
         process of a distributed slab holds the nodes of its cells only)."""
-        z0, t = np.asarray(z0, dtype=float), np.asarray(t, dtype=float)
+        t, end = np.asarray(t, dtype=float), float(end)
+        return self.along(z0, t / end if end > 0 else np.zeros_like(t), end)
+
+    def along(self, z0: np.ndarray, fractions: np.ndarray, end: float) -> np.ndarray:
+        """The predictor at the times fractions * end of a slab of length `end` (a slab's
+        nodes: their cubic Hermite weights are found once per array of fractions)."""
+        z0 = np.asarray(z0, dtype=float)
         end = float(end)
         if not (self._last[0] is not None and self._last[1] == end
                 and np.array_equal(self._last[0], z0)):
@@ -135,21 +146,30 @@ class FlowPredictor:
                                               if end <= 0 else self._run(z0, end))
             self._reads = {}
         _, _, states, rates = self._last
-        key = t.tobytes()
+        key = fractions.tobytes()
         if key in self._reads:  # the same slab read again (a restore after a probe)
             return self._reads[key]
         if end <= 0:
-            return np.repeat(states[:1], len(t), axis=0)
+            return np.repeat(states[:1], len(fractions), axis=0)
+        if key not in self._weights:
+            self._weights[key] = self._hermite(np.asarray(fractions, dtype=float))
+        rows, weights = self._weights[key]
         h = end / self.steps
-        u = np.clip(t / h, 0.0, self.steps)
-        k = np.minimum(u.astype(int), self.steps - 1)  # the step of each time
-        s = (u - k)[:, None]
-        h00, h10 = (1 + 2 * s) * (1 - s) ** 2, s * (1 - s) ** 2
-        h01, h11 = s ** 2 * (3 - 2 * s), s ** 2 * (s - 1)
-        out = (h00 * states[k] + h10 * h * rates[k] + h01 * states[k + 1]
-               + h11 * h * rates[k + 1])
+        out = np.einsum("mj,mjc->mc", weights, np.concatenate([states, h * rates])[rows])
         self._reads[key] = out
         return out
+
+    def _hermite(self, fractions: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        """(rows, weights), each (len(fractions), 4): the cubic Hermite of the step ends at the
+        fractions of the slab, as weights of rows of [states; h rates]."""
+        steps = self.steps
+        u = np.clip(fractions * steps, 0.0, steps)
+        k = np.minimum(u.astype(int), steps - 1)  # the step of each time
+        s = u - k
+        weights = np.stack([(1 + 2 * s) * (1 - s) ** 2, s * (1 - s) ** 2,
+                            s ** 2 * (3 - 2 * s), s ** 2 * (s - 1)], axis=1)
+        rows = np.stack([k, steps + 1 + k, k + 1, steps + 2 + k], axis=1)
+        return rows, weights
 
 
 def predictor(scene, base: str, steps: int):

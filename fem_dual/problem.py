@@ -250,6 +250,6 @@ class SlabProblem:
         elif self.predictor is not None:
             n = self.n
             dt = float(self.dt.value)
-            zbar = self.predictor(np.concatenate([x0, v0]), dt * self._base_times, dt)
+            zbar = self.predictor.along(np.concatenate([x0, v0]), self._base_times, dt)
             self.xbar.x.array.reshape(-1, n)[:] = zbar[:, :n]
             self.vbar.x.array.reshape(-1, n)[:] = zbar[:, n:]
