@@ -656,29 +656,35 @@ def _judge(vals: VertexValues, companion: VertexValues, algebraic: Optional[np.n
     return "accept", err_local, "", slab
 
 
-def _volume_kept(comm: MPI.Comm, sim: Simulation, z: np.ndarray, dt: float,
-                 err: Optional[float]) -> Tuple[str, Optional[float], str]:
-    """(action, err, reason) of a nonlinear slab (start state z) the estimate accepts: still
-    "accept" if its exact slab tangent preserves phase-space volume within
-    stepper.VOLUME_TOL, else "retry" (the slab does not follow the motion, and the companion
-    may miss it too). Slabs without exact tangents (PETSc SNES on forms) are not judged. On the
-    predictor base, which damps the fast oscillations the cells do not resolve by design
-    (fem_dual.base_state), only slabs over which a mode of the linearised motion grows by more
-    than e (it damped a saddle's growth too: `force --F 1e4*x --x0 1 --v0 -100 --T 0.15
-    --base predictor` ended ok 13 off with an estimate of 2e-3). On the rk4 base the tangent
+def _volume_kept(comm: MPI.Comm, sim: Simulation, z: np.ndarray, t0: float, dt: float,
+                 vals: Optional[VertexValues], err: Optional[float]
+                 ) -> Tuple[str, Optional[float], str]:
+    """(action, err, reason) of a nonlinear slab (start state z, vertex values `vals` on rank
+    0) the estimate accepts: still "accept" if its slab map's tangent preserves phase-space
+    volume within stepper.VOLUME_TOL, else "retry" (the slab does not follow the motion, and
+    the companion may miss it too). The tangent is exact on the pointwise path; PETSc's SNES
+    (forms) has none, so there its 2n columns are difference tangents of the solved slab (a
+    residual and a solve each: `curl3d --x0 1e3,0,0 --v0 0,1e-9,0 --cells 8 --assembly forms`
+    ended ok 444 off with an estimate of 1.6e-8 without them). On the predictor base, which
+    damps the fast oscillations the cells do not resolve by design (fem_dual.base_state),
+    only slabs over which a mode of the linearised motion grows by more than e are judged (it
+    damped a saddle's growth too: `force --F 1e4*x --x0 1 --v0 -100 --T 0.15 --base
+    predictor` ended ok 13 off with an estimate of 2e-3). On the rk4 base the exact tangent
     holds the base (its own change moves the answer by the discretisation error only).
     Collective."""
     from fem_dual.base_state import grows_within
 
-    jacobian = getattr(sim.solver, "slab_jacobian", None)
-    if jacobian is None:
-        return "accept", err, ""
     if sim.base == "predictor" and not grows_within(sim.scene, z[:sim.scene.n], dt):
         return "accept", err, ""
-    J = jacobian()
+    jacobian = getattr(sim.solver, "slab_jacobian", None)
+    if jacobian is not None:  # (each rank holds the slab whole)
+        J = jacobian()
+    else:
+        columns = [sim.tangent(z, unit, t0, dt, vals) for unit in np.eye(len(z))]
+        J = None if comm.rank != 0 else np.column_stack([c[-1] for c in columns])
     M = sim.scene.mass_matrix()
     D = sim.scene.constants().get("D")
-    defect = bcast(comm, volume_defect(J, M, D, dt))  # (each rank holds the slab whole)
+    defect = bcast(comm, volume_defect(J, M, D, dt) if J is not None else None)
     if defect <= VOLUME_TOL:
         return "accept", err, ""
     return "retry", None, (f"the slab map does not keep phase-space volume as the motion does "
@@ -1052,7 +1058,7 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool,
             shared = (("error", None, problem) if problem else verdict[:3]) if root else None
             action, err, reason = bcast(comm, shared)
             if action == "accept" and not sim.scene.linear:
-                action, err, reason = _volume_kept(comm, sim, z, dt, err)
+                action, err, reason = _volume_kept(comm, sim, z, t0, dt, vals, err)
         except SolveError as exc:
             action, err, reason = "retry", None, str(exc)
         timings["solve_s"] += time.perf_counter() - t1
