@@ -48,6 +48,10 @@ class Predictor:
     """zbar(t) = z0 + t (I - t J)^-1 f(z0) for a scene (linear: J is its first-order matrix)."""
 
     def __init__(self, scene):
+        self.use_scene(scene)
+
+    def use_scene(self, scene) -> None:
+        """Predict the motion of `scene` (new parameter values of the same kind of scene)."""
         self.scene = scene
         self.n = scene.n
         self.Minv = np.linalg.inv(scene.mass_matrix())
@@ -85,11 +89,15 @@ class FlowPredictor:
     loop's repeated starts (tangents, Newton probes) read it again without stepping."""
 
     def __init__(self, scene, steps: int):
+        self.steps = steps
+        self._weights: Dict[bytes, tuple] = {}  # Hermite weights of given fractions
+        self.use_scene(scene)
+
+    def use_scene(self, scene) -> None:
+        """Step the motion of `scene` (new parameter values of the same kind of scene)."""
         self.scene = scene
         self.n = scene.n
-        self.steps = steps
         self.Minv = np.linalg.inv(scene.mass_matrix())
-        self._weights: Dict[bytes, tuple] = {}  # Hermite weights of given fractions
         self.forget()
 
     def forget(self) -> None:
@@ -99,27 +107,39 @@ class FlowPredictor:
         self._reads: Dict[bytes, np.ndarray] = {}  # the run read at given times
 
     def _run(self, z0: np.ndarray, end: float):
-        """(states, rates) at the step ends: (steps + 1, 2n) each. RK4 of z = (x, v) written
-        for x' = v, v' = a(x) (the same sums as on z, in halves: no joined vectors per stage,
-        a 20-step slab of curl3d in 0.4 ms instead of 1)."""
+        """(states, rates) at the step ends: (steps + 1, 2n) each. Classical RK4 of z' = f(z)
+        for z = (x, v), f = (v, a(x)), in its Nystrom form (the same stages and sums, with
+        the velocity stages folded into the positions: a dozen array operations a step
+        fewer; a 20-step slab of curl3d in 0.3 ms, 1 ms as four stages of z)."""
         n, h, steps = self.n, end / self.steps, self.steps
         force, Minv = self.scene.force_numpy, self.Minv
-        states, rates = np.empty((steps + 1, 2 * n)), np.empty((steps + 1, 2 * n))
+        scale = float(Minv[0, 0])
+        if np.array_equal(Minv, scale * np.eye(n)):  # M = m I: 1/m joins the step constants
+            accel = force
+        else:
+            def accel(x):
+                return Minv @ force(x)
+            scale = 1.0
+        half, h2, hh2 = 0.5 * h, 0.25 * h * h * scale, 0.5 * h * h * scale
+        hh6, h6 = h * h * scale / 6.0, h * scale / 6.0
+        xs, vs, ks = [z0[:n]], [z0[n:]], []
         with np.errstate(all="ignore"):  # an overflow is judged below, once
-            x, v = z0[:n], z0[n:]
-            a1 = Minv @ force(x)
-            states[0], rates[0, :n], rates[0, n:] = z0, v, a1
-            for i in range(1, steps + 1):
-                v2 = v + 0.5 * h * a1
-                a2 = Minv @ force(x + 0.5 * h * v)
-                v3 = v + 0.5 * h * a2
-                a3 = Minv @ force(x + 0.5 * h * v2)
-                v4 = v + h * a3
-                a4 = Minv @ force(x + h * v3)
-                x = x + (h / 6.0) * (v + 2.0 * (v2 + v3) + v4)
-                v = v + (h / 6.0) * (a1 + 2.0 * (a2 + a3) + a4)
-                a1 = Minv @ force(x)
-                states[i, :n], states[i, n:], rates[i, :n], rates[i, n:] = x, v, v, a1
+            x, v = xs[0], vs[0]
+            k1 = accel(x)
+            ks.append(k1)
+            for _ in range(steps):
+                x2 = x + half * v
+                k2 = accel(x2)
+                k3 = accel(x2 + h2 * k1)
+                ahead = x + h * v
+                k4 = accel(ahead + hh2 * k2)
+                x = ahead + hh6 * (k1 + k2 + k3)
+                v = v + h6 * (k1 + 2.0 * (k2 + k3) + k4)
+                k1 = accel(x)
+                xs.append(x), vs.append(v), ks.append(k1)
+            v_all = np.array(vs)
+            states = np.hstack([np.array(xs), v_all])
+            rates = np.hstack([v_all, scale * np.array(ks)])
         if not (np.isfinite(states).all() and np.isfinite(rates).all()):
             from fem_dual.errors import SolveError
 

@@ -192,6 +192,8 @@ class SlabProblem:
         for key, value in scene.constants().items():
             self.c[key].value = value
         self.scene = scene
+        if self.predictor is not None:  # (the base steps the motion of these values)
+            self.predictor.use_scene(scene)
         self.version += 1
 
     def hamiltonian_of(self, xhat, vhat):

@@ -106,7 +106,8 @@ class Curl3D(ForceScene):
         return values
 
     def force_numpy(self, x):
-        curl = -np.array([x[1] * x[2], 2 * x[0] * x[2], x[0] * x[1]])
+        a, b, c = np.asarray(x, dtype=float).tolist()  # (floats: the rk4 base calls it often)
+        curl = np.array([-b * c, -2.0 * a * c, -a * b])
         return curl if self.K is None else curl - self._spring @ x
 
     @functools.cached_property
@@ -133,7 +134,8 @@ class Curl2D(ForceScene):
     k: float = 1.0
 
     def force_numpy(self, x):
-        return -self.k * np.array([x[0] * x[1] ** 2, x[0] ** 3])
+        a, b = np.asarray(x, dtype=float).tolist()  # (floats: the rk4 base calls it often)
+        return np.array([-self.k * a * b * b, -self.k * a ** 3])
 
     def force_jacobian_numpy(self, x):
         return -self.k * np.array([[x[1] ** 2, 2 * x[0] * x[1]], [3 * x[0] ** 2, 0.0]])
