@@ -188,3 +188,20 @@ def test_forms_path_with_no_newton_step_has_its_jacobian(case):
     assert forms.status == "ok" and 0 in forms.solver["newton_iterations"]
     assert np.abs(forms.x - pointwise.x).max() <= 1e-12 * max(1.0, np.abs(pointwise.x).max())
     assert forms.error_estimate == pytest.approx(pointwise.error_estimate, rel=1e-3, abs=1e-14)
+
+
+def test_new_parameter_values_reach_the_base():
+    """A Simulation compiled once runs new parameter values of its scene (the forms take
+    them as constants); the rk4 base steps the motion of those values, not the first ones."""
+    first = RunConfig.create("curl3d", T=1, cells=2, degree=3, slabs=1, base="rk4",
+                             reference="none", staging="off")
+    sim = Simulation.for_config(first)
+    try:
+        sim.run(first)
+        second = RunConfig.create("curl3d", {"K": "2,0,0,0,2,0,0,0,2"}, T=1, cells=2, degree=3,
+                                  slabs=1, base="rk4", reference="none", staging="off")
+        sim.run(second)
+        for problem in (sim.problem, sim.companion.problem):
+            assert problem.predictor.scene == second.scene
+    finally:
+        sim.close()
