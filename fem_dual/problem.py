@@ -65,7 +65,6 @@ class SlabProblem:
         extra = getattr(scene.forms, "extra_dual", 0)  # multipliers of a lifted scene
         self.W = vector_space(msh, degree, 2 * n + extra)
         self.w = fem.Function(self.W, name="dual")
-        self._taken: Optional[tuple] = None  # (partner, its basis at our nodes, dofmaps)
 
         # Run constants (scene parameters) and per-slab constants.
         self.c: Dict[str, fem.Constant] = {k: constant(msh, v) for k, v in scene.constants().items()}
@@ -168,6 +167,8 @@ class SlabProblem:
         return xhat, vhat, L_d
 
     mu = None  # an unfolding damping -mu M v (fem_dual.orbit); slabs have none
+    predictor = None  # a base state that is a function of time (orbits have none)
+    _taken: Optional[tuple] = None  # (partner, its basis at our nodes, dofmaps)
     # bumped whenever a constant changes (start state, slab, parameters): a solver that saw the
     # same dual state at the same version has the same DtP image (fem_dual.newton)
     version = 0
