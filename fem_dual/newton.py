@@ -272,11 +272,12 @@ class NewtonSlabSolver(CompiledSlab):
         history = [float(r) for r in self.snes.getConvergenceHistory()[0]]
         if reason < 0 and self._error:
             raise SolveError(self._error)
-        if self.snes.getIterationNumber() == 0:
+        if self.snes.getIterationNumber() == 0 or not self.A.assembled:
             # no Newton step (a start at the residual's round-off: an equilibrium, a base state
-            # that is the motion): the Jacobian that the round-off test, the tangents and the
-            # extra Newton step use is assembled here, at the state SNES stopped at (it was
-            # never assembled, or held an earlier slab's)
+            # that is the motion), or a method that never forms the Jacobian (anderson: its
+            # norm crashed PETSc, exit 1): the Jacobian that the round-off test, the tangents
+            # and the extra Newton step use is assembled here, at the state SNES stopped at (it
+            # was never assembled, or held an earlier slab's)
             self._jacobian(self.snes, self.x, self.A, self.A)
             self.snes.getKSP().setOperators(self.A)  # new values: refactor at the next solve
         backward = 0.0

@@ -167,6 +167,18 @@ def test_legit_options_run(args, capsys):
 
 
 @pytest.mark.serial
+def test_a_snes_type_without_a_jacobian_fails_cleanly(capsys):
+    """anderson never forms the Jacobian; the round-off test took its norm and PETSc crashed
+    (exit 1, 'Not for unassembled matrix'). It is assembled at the state SNES stopped at: a
+    Newton failure that halves the slab, then exit 3 with the reason, or an answer."""
+    from fem_dual.cli import main
+
+    status = main(CURL3D + _options("snes_type=anderson"))
+    err = capsys.readouterr().err
+    assert status in (0, 3) and "unassembled" not in err and "internal error" not in err
+
+
+@pytest.mark.serial
 @pytest.mark.parametrize("args, tell", [
     (ZIEGLER + _options("ksp_monitor=", "ksp_view=", "ksp_converged_reason="),
      ["KSP Object: (dual_ziegler_)", "Linear dual_ziegler_ solve converged"]),
