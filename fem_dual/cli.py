@@ -404,7 +404,7 @@ def _bench(args, params, comm: MPI.Comm) -> int:
             print(json.dumps({"rows": rows}, allow_nan=False), file=_json_out(), flush=True)
         else:
             print(bm.table(rows))
-            peers = [m for m in ("DOP853", "Radau", "LSODA", "expm")
+            peers = [m for m in ("DOP853", "DOP853-f", "Radau", "LSODA", "expm")
                      if any(r["method"] == m for r in rows)]
             for peer in peers:
                 for target in (1e-4, 1e-6, 1e-8, 1e-10):  # (the speed issue's range: to 1e-10)
