@@ -170,15 +170,39 @@ class LocalAction:
         # functions a, b: B[e, (a, b), pair] = P_kl[e] @ H[e, q, pair], P_kl[(a, b), q] =
         # w_q T[q, k, a] T[q, l, b], for the pairs of each (k, l) at once
         self._groups = []
+        group_of = np.zeros(len(pairs), dtype=np.int64)  # each pair's group among those present
         for k, l in ((0, 0), (0, 1), (1, 1)):
             members = [i for i, (K, L) in enumerate(pairs) if (K // bs, L // bs) == (k, l)]
             if not members:
                 continue
             if members != list(range(members[0], members[-1] + 1)):
                 raise RuntimeError("the Hessian pairs of a group are not contiguous")
+            group_of[members] = len(self._groups)
             P = np.einsum("eqa,eqb->eabq", Tw[:, :, k], T[:, :, l])
             self._groups.append((members[0], members[-1] + 1,
                                  np.ascontiguousarray(P.reshape(cell_count, nd * nd, nq))))
+        # On an interval every cell's P is its first cell's times a number (its length, and
+        # its Jacobian per derivative): then each group takes one matrix product for all
+        # cells, P (nd^2, q) @ H (q, cells members), after a scaling per cell and pair, into
+        # one buffer ([nd^2, cells, members] per group, one after the other)
+        self._one_product = None
+        scale = np.ones((cell_count, len(self._groups)))
+        for g, (_, _, P) in enumerate(self._groups):
+            first = P[0].ravel()
+            scale[:, g] = P.reshape(cell_count, -1) @ first / (first @ first)
+            if not np.allclose(P, scale[:, g, None, None] * P[0], rtol=1e-13,
+                               atol=1e-13 * np.abs(first).max()):
+                scale = None
+                break
+        offsets = np.zeros(len(pairs), dtype=np.int64)  # where each pair's group starts
+        if scale is not None and self._groups:
+            products, start = [], 0
+            for lo, hi, P in self._groups:
+                size = nd * nd * cell_count * (hi - lo)
+                products.append((lo, hi, P[0], start, start + size))
+                offsets[lo:hi] = start
+                start += size
+            self._one_product = (products, np.ascontiguousarray(scale[:, group_of]), start)
 
         # unknowns in time order, without the Dirichlet values at s = 1
         s = scalar.tabulate_dof_coordinates()[:, 0]
@@ -209,6 +233,11 @@ class LocalAction:
         j = rows[e_, b_, d_of[m_]].ravel()
         mirror = np.array([K != L for K, L in pairs])[m_].ravel()
         source = np.arange(int(np.prod(shape)))
+        if self._one_product is not None:  # the same entry in its group's [nd^2, cells, members]
+            lows = np.array([lo for lo, _, _ in self._groups])[group_of]
+            sizes = np.array([hi - lo for lo, hi, _ in self._groups])[group_of]
+            source = (offsets[m_] + ((a_ * nd + b_) * cell_count + e_) * sizes[m_]
+                      + m_ - lows[m_]).ravel()
         i, j, source = (np.concatenate([i, j[mirror]]), np.concatenate([j, i[mirror]]),
                         np.concatenate([source, source[mirror]]))
         keep = (i >= 0) & (j >= 0)
@@ -318,7 +347,15 @@ class LocalAction:
 
     def _band(self, out: np.ndarray) -> np.ndarray:
         """The Jacobian's band (dgbtrf's storage) from an evaluation (cells, q, columns)."""
-        B = self._blocks(out[..., self._hess_cols])
+        if self._one_product is not None:
+            products, scale, total = self._one_product
+            H = out.transpose(1, 0, 2)[:, :, self._hess_cols] * scale  # (q, cells, pairs)
+            B = np.empty(total)
+            for lo, hi, P, start, end in products:
+                np.matmul(P, H[:, :, lo:hi].reshape(self.nq, -1),
+                          out=B[start:end].reshape(len(P), -1))
+        else:
+            B = self._blocks(out[..., self._hess_cols])
         band = np.bincount(self._j_flat, B.ravel()[self._j_source],
                            minlength=self._band_rows * self.size)
         return band.reshape(self._band_rows, self.size)
