@@ -185,24 +185,21 @@ class LocalAction:
         # its Jacobian per derivative): then each group takes one matrix product for all
         # cells, P (nd^2, q) @ H (q, cells members), after a scaling per cell and pair, into
         # one buffer ([nd^2, cells, members] per group, one after the other)
-        self._one_product = None
         scale = np.ones((cell_count, len(self._groups)))
         for g, (_, _, P) in enumerate(self._groups):
             first = P[0].ravel()
             scale[:, g] = P.reshape(cell_count, -1) @ first / (first @ first)
             if not np.allclose(P, scale[:, g, None, None] * P[0], rtol=1e-13,
                                atol=1e-13 * np.abs(first).max()):
-                scale = None
-                break
+                raise RuntimeError("a cell of the slab mesh is not an affine image of the first")
         offsets = np.zeros(len(pairs), dtype=np.int64)  # where each pair's group starts
-        if scale is not None and self._groups:
-            products, start = [], 0
-            for lo, hi, P in self._groups:
-                size = nd * nd * cell_count * (hi - lo)
-                products.append((lo, hi, P[0], start, start + size))
-                offsets[lo:hi] = start
-                start += size
-            self._one_product = (products, np.ascontiguousarray(scale[:, group_of]), start)
+        products, start = [], 0
+        for lo, hi, P in self._groups:
+            size = nd * nd * cell_count * (hi - lo)
+            products.append((lo, hi, P[0], start, start + size))
+            offsets[lo:hi] = start
+            start += size
+        self._products = (products, np.ascontiguousarray(scale[:, group_of]), start)
 
         # unknowns in time order, without the Dirichlet values at s = 1
         s = scalar.tabulate_dof_coordinates()[:, 0]
@@ -226,18 +223,16 @@ class LocalAction:
         # diagonal of the Hessian, row (e, b, d) and column (e, a, c) too
         c_of = np.array([K % bs for K, _ in pairs], dtype=int)
         d_of = np.array([L % bs for _, L in pairs], dtype=int)
-        shape = (cell_count, nd, nd, len(pairs))
         e_, a_, b_, m_ = np.meshgrid(np.arange(cell_count), np.arange(nd), np.arange(nd),
                                      np.arange(len(pairs)), indexing="ij")
         i = rows[e_, a_, c_of[m_]].ravel()
         j = rows[e_, b_, d_of[m_]].ravel()
         mirror = np.array([K != L for K, L in pairs])[m_].ravel()
-        source = np.arange(int(np.prod(shape)))
-        if self._one_product is not None:  # the same entry in its group's [nd^2, cells, members]
-            lows = np.array([lo for lo, _, _ in self._groups])[group_of]
-            sizes = np.array([hi - lo for lo, hi, _ in self._groups])[group_of]
-            source = (offsets[m_] + ((a_ * nd + b_) * cell_count + e_) * sizes[m_]
-                      + m_ - lows[m_]).ravel()
+        # the entry's place in its group's [nd^2, cells, members] (see _band)
+        lows = np.array([lo for lo, _, _ in self._groups], dtype=np.int64)[group_of]
+        sizes = np.array([hi - lo for lo, hi, _ in self._groups], dtype=np.int64)[group_of]
+        source = (offsets[m_] + ((a_ * nd + b_) * cell_count + e_) * sizes[m_]
+                  + m_ - lows[m_]).ravel()
         i, j, source = (np.concatenate([i, j[mirror]]), np.concatenate([j, i[mirror]]),
                         np.concatenate([source, source[mirror]]))
         keep = (i >= 0) & (j >= 0)
@@ -347,15 +342,11 @@ class LocalAction:
 
     def _band(self, out: np.ndarray) -> np.ndarray:
         """The Jacobian's band (dgbtrf's storage) from an evaluation (cells, q, columns)."""
-        if self._one_product is not None:
-            products, scale, total = self._one_product
-            H = out.transpose(1, 0, 2)[:, :, self._hess_cols] * scale  # (q, cells, pairs)
-            B = np.empty(total)
-            for lo, hi, P, start, end in products:
-                np.matmul(P, H[:, :, lo:hi].reshape(self.nq, -1),
-                          out=B[start:end].reshape(len(P), -1))
-        else:
-            B = self._blocks(out[..., self._hess_cols])
+        products, scale, total = self._products
+        H = out.transpose(1, 0, 2)[:, :, self._hess_cols] * scale  # (q, cells, pairs)
+        B = np.empty(total)
+        for lo, hi, P, start, end in products:
+            np.matmul(P, H[:, :, lo:hi].reshape(self.nq, -1), out=B[start:end].reshape(len(P), -1))
         band = np.bincount(self._j_flat, B.ravel()[self._j_source],
                            minlength=self._band_rows * self.size)
         return band.reshape(self._band_rows, self.size)
@@ -499,12 +490,6 @@ class LocalAction:
                 p.x0.value, p.v0.value = saved
             self._mass_at = (M.copy(), np.linalg.inv(M), np.column_stack(columns))
         return self._mass_at[1], self._mass_at[2]
-
-    def _blocks(self, H: np.ndarray) -> np.ndarray:
-        """B[e, (a, b), pair] from the nonzero Hessian entries H (cells, q, pairs)."""
-        cells = len(self.cells)
-        blocks = [np.matmul(P, H[..., lo:hi]) for lo, hi, P in self._groups]
-        return np.concatenate([b.reshape(cells, -1, b.shape[-1]) for b in blocks], axis=-1)
 
     def dense_jacobian(self) -> np.ndarray:
         """The Jacobian at the current state as a dense matrix (tests)."""
