@@ -115,7 +115,10 @@ class FlowPredictor:
         force, Minv = self.scene.force_numpy, self.Minv
         scale = float(Minv[0, 0])
         if np.array_equal(Minv, scale * np.eye(n)):  # M = m I: 1/m joins the step constants
-            accel = force
+            def accel(x):  # (a scene file's force may answer a list: sums must be numpy's)
+                return np.asarray(force(x), dtype=float)
+            if isinstance(force(z0[:n]), np.ndarray):
+                accel = force
         else:
             def accel(x):
                 return Minv @ force(x)

@@ -205,3 +205,21 @@ def test_new_parameter_values_reach_the_base():
             assert problem.predictor.scene == second.scene
     finally:
         sim.close()
+
+
+def test_a_force_that_answers_a_list_steps_as_an_array_does():
+    """A scene file's force_numpy may return a list: the rk4 sums must not concatenate it."""
+    scene = get_scene("curl2d")()
+
+    class ListForce:
+        n = 2
+
+        def mass_matrix(self):
+            return np.eye(2)
+
+        def force_numpy(self, x):
+            return list(scene.force_numpy(x))
+
+    z0, t = np.array([1.0, 1.0, 0.0, 0.0]), np.linspace(0.0, 1.0, 5)
+    expected = FlowPredictor(scene, 10)(z0, t, 1.0)
+    assert np.array_equal(FlowPredictor(ListForce(), 10)(z0, t, 1.0), expected)
