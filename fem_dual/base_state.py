@@ -15,10 +15,10 @@ forces), so unresolved modes are not forced.
 
 The flow predictor ("rk4") is for motions that are not stiff: classical Runge-Kutta from the
 start, (p + 1) steps per cell, read at the base state's nodes by cubic Hermites. Near the motion
-to O(h^4), it leaves the dual fields only a small correction, so Newton converges from the zero dual state
-on slabs several times longer than from the constant start state (curl3d T = 8 at rtol 1e-6:
-2 slabs of 4 against 8 slabs and 5 failed Newtons), and the correction's discretisation error
-is small with it.
+to O(h^4), it leaves the dual fields only a small correction, so Newton converges from the zero
+dual state on slabs several times longer than from the constant start state (curl3d T = 8 at
+rtol 1e-6: 2 slabs of 4 against 8 slabs and 5 failed Newtons), and the correction's
+discretisation error is small with it.
 """
 from __future__ import annotations
 
@@ -85,8 +85,9 @@ class Predictor:
 class FlowPredictor:
     """zbar(t): classical RK4 of z' = f(z) from z0 in `steps` equal steps over the slab,
     read at the times t by the cubic Hermite of the step ends (O(h^4), as the steps). The last
-    run is kept: the error companion (nodes of another degree on the same slab) and the slab
-    loop's repeated starts (tangents, Newton probes) read it again without stepping."""
+    run is kept within a run of the slab loop: its repeated starts of a slab (tangents, Newton
+    probes) read it again without stepping. The error companion steps its own, with twice the
+    steps (fem_dual.driver.Simulation.companion)."""
 
     def __init__(self, scene, steps: int):
         self.steps = steps

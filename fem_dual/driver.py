@@ -188,8 +188,8 @@ class Simulation:
         modal: linear scenes: solve in modal coordinates (fem_dual.modal); a ModalBasis is
             shared (the error companion uses its partner's).
         mesh: the slab mesh to share (the companion uses its partner's).
-        shared_predictor: the base state's predictor to share (the companion uses its
-            partner's: fem_dual.problem.SlabProblem).
+        shared_predictor: the base state's predictor to use (the companion's: a linearised
+            predictor is its partner's, an rk4 one its own with twice the steps).
         pointwise: assemble pointwise and solve by the banded LU or dense Newton of
             fem_dual.pointwise_newton (every rank solves the whole slab), not by PETSc KSP or
             SNES on forms distributed over `comm`; None: unless PETSc options are given.

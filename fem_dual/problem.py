@@ -49,8 +49,8 @@ class SlabProblem:
         base: the base state of H (BASES).
         mesh: a slab mesh of `cells` cells to share (the error companion uses its partner's,
             so that its Newton can start from the partner's solution).
-        shared_predictor: the predictor of a base state that is a function of time, to share
-            (the error companion reads its partner's rk4 run instead of stepping again).
+        shared_predictor: the predictor of a base state that is a function of time, to use
+            instead of a new one (fem_dual.driver.Simulation.companion).
     """
 
     def __init__(self, scene: Scene, degree: int, cells: int, comm: MPI.Comm = MPI.COMM_WORLD,
@@ -73,9 +73,9 @@ class SlabProblem:
         self.t0 = constant(msh, 0.0)
         self.x0, self.v0 = constant(msh, zero), constant(msh, zero)
         self.predictor = None
-        # (rk4: p + 1 steps a cell. Fewer cost accuracy, and the estimate can miss it, since
-        # the companion reads the same base: curl3d T = 8 --rtol 1e-8 at p = 4, 4 cells ended
-        # 3.2e-10 off (estimate 6.7e-10) with 5 a cell, 1.03e-8 off (estimate 7e-9) with 2)
+        # (rk4: p + 1 steps a cell. Fewer cost accuracy: curl3d T = 8 --rtol 1e-8 at p = 4, 4
+        # cells ended 3.2e-10 off with 5 a cell, 1.03e-8 off with 2; when the companion read
+        # the same run, its estimate (7e-9) missed that)
         if base in ("predictor", "rk4"):  # a function of time, one degree above the duals
             self.predictor = shared_predictor or predictor(scene, base, cells * (degree + 1))
             space = vector_space(msh, degree + 1, n)
