@@ -202,12 +202,17 @@ def predictor(scene, base: str, steps: int):
     return FlowPredictor(scene, steps) if base == "rk4" else Predictor(scene)
 
 
+def _linearised_modes(scene, x0: np.ndarray) -> np.ndarray:
+    """mu: the eigenvalues of M^-1 dF/dx at x0 (the first-order system's are +-sqrt(mu))."""
+    Minv = np.linalg.inv(scene.mass_matrix())
+    return np.linalg.eigvals(Minv @ force_jacobian(scene.force_numpy, x0))
+
+
 def grows_within(scene, x0: np.ndarray, dt: float) -> bool:
     """Whether the motion linearised at x0 has a mode that grows by more than a factor e over
     a time dt: an eigenvalue lambda = sqrt(mu) of the first-order system, mu an eigenvalue of
     M^-1 dF/dx, with Re(lambda) dt > 1."""
-    Minv = np.linalg.inv(scene.mass_matrix())
-    mu = np.linalg.eigvals(Minv @ force_jacobian(scene.force_numpy, x0))
+    mu = _linearised_modes(scene, x0)
     return bool(np.sqrt(mu.astype(complex)).real.max(initial=0.0) * dt > 1.0)
 
 
@@ -220,9 +225,8 @@ def stiff_at_start(scene, x0: np.ndarray, v0: np.ndarray) -> bool:
     is not called stiff (curl3d at x = (1e3, 0, 0) grows at 38 per unit of time)."""
     from fem_dual.stepper import motion_rate
 
-    Minv = np.linalg.inv(scene.mass_matrix())
-    a0 = Minv @ scene.force_numpy(x0)
-    mu = np.linalg.eigvals(Minv @ force_jacobian(scene.force_numpy, x0))
+    a0 = np.linalg.solve(scene.mass_matrix(), scene.force_numpy(x0))
+    mu = _linearised_modes(scene, x0)
     rate = motion_rate(x0, v0, a0)
     if not rate > 0:
         return False

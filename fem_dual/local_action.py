@@ -180,7 +180,7 @@ class LocalAction:
         # Jacobian: the entries of Hessian pair (K, L) = (k bs + c, l bs + d) at the basis
         # functions a, b: B[e, (a, b), pair] = P_kl[e] @ H[e, q, pair], P_kl[(a, b), q] =
         # w_q T[q, k, a] T[q, l, b], for the pairs of each (k, l) at once
-        self._groups = []
+        groups = []
         group_of = np.zeros(len(pairs), dtype=np.int64)  # each pair's group among those present
         for k, l in ((0, 0), (0, 1), (1, 1)):
             members = [i for i, (K, L) in enumerate(pairs) if (K // bs, L // bs) == (k, l)]
@@ -188,16 +188,16 @@ class LocalAction:
                 continue
             if members != list(range(members[0], members[-1] + 1)):
                 raise RuntimeError("the Hessian pairs of a group are not contiguous")
-            group_of[members] = len(self._groups)
+            group_of[members] = len(groups)
             P = np.einsum("eqa,eqb->eabq", Tw[:, :, k], T[:, :, l])
-            self._groups.append((members[0], members[-1] + 1,
-                                 np.ascontiguousarray(P.reshape(cell_count, nd * nd, nq))))
+            groups.append((members[0], members[-1] + 1,
+                           np.ascontiguousarray(P.reshape(cell_count, nd * nd, nq))))
         # On an interval every cell's P is its first cell's times a number (its length, and
         # its Jacobian per derivative): then each group takes one matrix product for all
         # cells, P (nd^2, q) @ H (q, cells members), after a scaling per cell and pair, into
         # one buffer ([nd^2, cells, members] per group, one after the other)
-        scale = np.ones((cell_count, len(self._groups)))
-        for g, (_, _, P) in enumerate(self._groups):
+        scale = np.ones((cell_count, len(groups)))
+        for g, (_, _, P) in enumerate(groups):
             first = P[0].ravel()
             scale[:, g] = P.reshape(cell_count, -1) @ first / (first @ first)
             if not np.allclose(P, scale[:, g, None, None] * P[0], rtol=1e-13,
@@ -205,7 +205,7 @@ class LocalAction:
                 raise RuntimeError("a cell of the slab mesh is not an affine image of the first")
         offsets = np.zeros(len(pairs), dtype=np.int64)  # where each pair's group starts
         products, start = [], 0
-        for lo, hi, P in self._groups:
+        for lo, hi, P in groups:
             size = nd * nd * cell_count * (hi - lo)
             products.append((lo, hi, P[0], start, start + size))
             offsets[lo:hi] = start
@@ -240,8 +240,8 @@ class LocalAction:
         j = rows[e_, b_, d_of[m_]].ravel()
         mirror = np.array([K != L for K, L in pairs])[m_].ravel()
         # the entry's place in its group's [nd^2, cells, members] (see _band)
-        lows = np.array([lo for lo, _, _ in self._groups], dtype=np.int64)[group_of]
-        sizes = np.array([hi - lo for lo, hi, _ in self._groups], dtype=np.int64)[group_of]
+        lows = np.array([lo for lo, _, _ in groups], dtype=np.int64)[group_of]
+        sizes = np.array([hi - lo for lo, hi, _ in groups], dtype=np.int64)[group_of]
         source = (offsets[m_] + ((a_ * nd + b_) * cell_count + e_) * sizes[m_]
                   + m_ - lows[m_]).ravel()
         i, j, source = (np.concatenate([i, j[mirror]]), np.concatenate([j, i[mirror]]),
@@ -261,20 +261,17 @@ class LocalAction:
         self._n2 = n2
 
         # the vertices of the cell ends, in the order of s (fem_dual.recovery's vertex order)
-        _, self._vertex, counts = np.unique(ends.ravel(), return_inverse=True,
-                                            return_counts=True)
-        self._vertex_weight = 1.0 / counts
+        _, vertex, counts = np.unique(ends.ravel(), return_inverse=True, return_counts=True)
         # the mean of the one-sided values at each vertex: (vertices, cells * 2)
         self._vertex_mean = np.zeros((len(counts), 2 * cell_count))
-        self._vertex_mean[self._vertex, np.arange(2 * cell_count)] = self._vertex_weight[
-            self._vertex]
+        self._vertex_mean[vertex, np.arange(2 * cell_count)] = 1.0 / counts[vertex]
         self._T = T  # (cells, q, 2, nd)
         self._dofs = dofs
 
         self._held: Optional[Tuple[int, np.ndarray]] = None
         self.error: Optional[str] = None  # why the implicit DtP map failed at the state
         self._initial_at: Optional[Tuple[int, np.ndarray]] = None
-        self._both_at: Optional[Tuple[int, np.ndarray]] = None  # state of the last evaluation
+        self._both_at: Optional[tuple] = None  # (version, state, R) of the last evaluation
         self._tangent_at: Optional[tuple] = None  # (state, LU, tangent matrix)
         self._mass_at: Optional[tuple] = None  # (M, M^-1, d initial rows / d z0)
 

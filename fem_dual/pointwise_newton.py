@@ -238,33 +238,30 @@ class PointwiseNewtonSolver(_PointwiseSolver):
         predictor's, held (fem_dual.local_action.LocalAction.vertex_tangent)."""
         return self.problem.Zbar is not None or self.problem.base == "rk4"
 
+    def _linearised(self, what, *args):
+        """`what` (a LocalAction linearisation) at the converged slab; its failure to solve the
+        implicit DtP map there as a SolveError."""
+        self.local.set_state(self.x)
+        try:
+            return what(*args)
+        except ValueError as exc:
+            raise SolveError(str(exc)) from None
+
     def exact_tangent(self, dz: np.ndarray) -> np.ndarray:
         """d(x, v)/dz0 . dz at the vertices (vertices, 2n) of the converged slab, exactly
         (fem_dual.local_action.LocalAction.vertex_tangent): no difference step, no error of
         its own."""
-        self.local.set_state(self.x)
-        try:
-            return self.local.vertex_tangent(dz)[0]
-        except ValueError as exc:
-            raise SolveError(str(exc)) from None
+        return self._linearised(self.local.vertex_tangent, dz)[0]
 
     def slab_jacobian(self) -> np.ndarray:
         """d z_end / d z0 (2n, 2n) of the converged slab, exactly (see exact_tangent)."""
-        self.local.set_state(self.x)
-        try:
-            return self.local.tangent_matrix()[-1]
-        except ValueError as exc:
-            raise SolveError(str(exc)) from None
+        return self._linearised(self.local.tangent_matrix)[-1]
 
     def newton_change(self) -> np.ndarray:
         """How far the vertex values (vertices, 2n) of the converged slab would move with one
         more Newton step, to first order in the step, from the exact tangents' solve (no
         displaced state to sample and restore)."""
-        self.local.set_state(self.x)
-        try:
-            return self.local.newton_change()
-        except ValueError as exc:
-            raise SolveError(str(exc)) from None
+        return self._linearised(self.local.newton_change)
 
     def newton_step(self) -> None:
         """Leave the problem at the converged state plus one more Newton step, w - J^-1 R(w):
