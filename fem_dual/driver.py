@@ -297,7 +297,7 @@ class Simulation:
                 # its own rk4 run with twice the steps: a base error the two shared would
                 # be missed by their difference (curl3d T = 8 --rtol 1e-10 at p = 6, one cell:
                 # ok 6.2e-11 off with an estimate of 3.8e-12, the companion as far off)
-                base_state = FlowPredictor(base_state.scene, 2 * base_state.steps)
+                base_state = base_state.with_steps(2 * base_state.steps)
             self._companion = Simulation(self.scene, self.degree + 1, self.cells, self.comm,
                                          self.petsc, self.recovery, self.kronecker,
                                          with_dual=False, base=self.base,

@@ -1,0 +1,75 @@
+"""Issue 17: the compiled loops (fem_dual.native) compute what their numpy twins compute, on the
+scene's UFL force compiled by FFCx; where they cannot be built, the numpy loops run instead."""
+import dataclasses
+
+import numpy as np
+import pytest
+
+from fem_dual import RunConfig, native, run
+from fem_dual.base_state import FlowPredictor
+from fem_dual.scenes import get_scene
+from fem_dual.scenes.curl import Curl3D
+
+pytestmark = pytest.mark.skipif(native.library() is None,
+                                reason=f"no compiled loops here: {native.reason()}")
+
+
+@dataclasses.dataclass(frozen=True)
+class _UnequalMasses(Curl3D):
+    """curl3d with M = diag(1, 2, 3): the loop's M^-1 F branch (the scenes have M = m I)."""
+
+    def mass_matrix(self):
+        return np.diag([1.0, 2.0, 3.0])
+
+
+def _scene(name, **params):
+    return RunConfig.create(name, {k: str(v) for k, v in params.items()}, x0="1" if name ==
+                            "force" else None).scene
+
+
+def _both(scene, z0, steps=24, end=2.0):
+    t = np.linspace(0.0, end, 13)
+    compiled = FlowPredictor(scene, steps)
+    assert compiled.compiled
+    return compiled(z0, t, end), FlowPredictor(scene, steps, compiled=False)(z0, t, end)
+
+
+@pytest.mark.parametrize("scene, z0", [
+    (get_scene("curl3d")(m=2.0), [0.3, 0.2, 0.1, 0.1, -0.2, 0.05]),
+    (_scene("curl3d", K="2,0,0,0,3,0,0,0,4"), [0.3, 0.2, 0.1, 0.0, 0.0, 0.0]),
+    (get_scene("curl2d")(), [1.0, 0.5, 0.0, 0.2]),
+    (get_scene("curl2d-lifted")(), [1.0, 0.5, 0.0, 0.2]),
+    (_scene("force", F="-sin(x) - a*x**3", a=0.5), [2.5, 0.3]),
+    (_UnequalMasses(), [0.3, 0.2, 0.1, 0.0, 0.1, 0.0]),
+])
+def test_compiled_rk4_is_the_numpy_loop(scene, z0):
+    compiled, numpy_loop = _both(scene, np.array(z0))
+    assert np.abs(compiled - numpy_loop).max() <= 1e-13 * np.abs(numpy_loop).max()
+
+
+def test_compiled_rk4_takes_new_parameter_values():
+    first, second = get_scene("curl3d")(), _scene("curl3d", m=3, K="1,1,1,1,4,1,1,1,5")
+    z0, t = np.array([0.3, 0.2, 0.1, 0.0, 0.0, 0.0]), np.linspace(0.0, 1.0, 5)
+    predictor = FlowPredictor(first, 10)
+    predictor(z0, t, 1.0)
+    predictor.use_scene(second)
+    expected = FlowPredictor(second, 10, compiled=False)(z0, t, 1.0)
+    assert np.abs(predictor(z0, t, 1.0) - expected).max() <= 1e-14
+
+
+def test_compiled_rk4_stops_at_a_blow_up():
+    """x'' = x^3 from x = 10 blows up within the slab: the loop says so, no NaN is kept."""
+    scene = _scene("force", F="x**3")
+    predictor = FlowPredictor(scene, 50)
+    with pytest.raises(Exception, match="overflowed"):
+        predictor(np.array([10.0, 0.0]), np.linspace(0.0, 5.0, 3), 5.0)
+
+
+def test_runs_without_the_compiled_loops_give_the_same_answer(monkeypatch):
+    config = dict(T=2, cells=2, degree=4, base="rk4", staging="off")
+    compiled = run(RunConfig.create("curl3d", **config))
+    monkeypatch.setitem(native._loaded, "lib", None)  # as where no compiler is found
+    fallback = run(RunConfig.create("curl3d", **config))
+    assert compiled.status == fallback.status == "ok"
+    assert np.abs(compiled.x - fallback.x).max() <= 1e-13
+    assert abs(compiled.error_estimate - fallback.error_estimate) <= 1e-6 * fallback.error_estimate
