@@ -211,6 +211,7 @@ class LocalAction:
             offsets[lo:hi] = start
             start += size
         self._products = (products, np.ascontiguousarray(scale[:, group_of]), start)
+        self._native_band = None  # its compiled twin's pointers (_compiled_band)
 
         # unknowns in time order, without the Dirichlet values at s = 1
         s = scalar.tabulate_dof_coordinates()[:, 0]
@@ -252,6 +253,7 @@ class LocalAction:
         self._band_rows = 3 * kd + 1  # dgbtrf's storage: kd more rows for the fill-in
         self._j_source = source
         self._j_flat = (2 * kd + i - j) * N + j  # band[2 kd + i - j, j] = J[i, j]
+        self._compiled_band()
 
         # the momenta at the cell ends (fem_dual.recovery): the cell residual at the vertex
         # basis functions (local dofs 0 and 1 sit at reference points 0 and 1), signed by the
@@ -348,8 +350,39 @@ class LocalAction:
         self._both_at = (self.problem.version, self.problem.w.x.array.copy(), R)
         return R, self._band(out)
 
+    def _compiled_band(self) -> None:
+        """Hold what the compiled band (fem_dual.native) reads, as C pointers, where the
+        compiled loops are available."""
+        from fem_dual import native
+
+        built = native.library()
+        if built is None or self.nd ** 2 > 1024:  # (the loop's sums are on its stack)
+            return
+        ffi, lib = built
+        products, scale, total = self._products
+        keep = [np.ascontiguousarray(a, dtype=dtype) for a, dtype in (
+            (self._hess_cols, np.int64), (scale, float),
+            ([lo for lo, _, _, _, _ in products], np.int64),
+            ([hi for _, hi, _, _, _ in products], np.int64),
+            ([start for _, _, _, start, _ in products], np.int64),
+            (np.stack([P.T for _, _, P, _, _ in products]), float),
+            (self._j_flat, np.int64), (self._j_source, np.int64), (np.empty(total), float))]
+        cols, scale_, lo, hi, start, P, flat, source, B = keep
+        pointers = [native.pointer(ffi, a, "int64_t *" if a.dtype == np.int64 else "double *")
+                    for a in keep]
+        self._native_band = (ffi, lib, keep, pointers, len(products), P.shape[2], len(flat))
+
     def _band(self, out: np.ndarray) -> np.ndarray:
         """The Jacobian's band (dgbtrf's storage) from an evaluation (cells, q, columns)."""
+        if self._native_band is not None and out.flags.c_contiguous:
+            ffi, lib, _, (cols, scale, lo, hi, start, P, flat, source, B), groups, nd2, \
+                entries = self._native_band
+            band = np.empty((self._band_rows, self.size))
+            lib.fem_dual_band(out.shape[0], out.shape[1], out.shape[2],
+                              ffi.cast("double *", out.ctypes.data), len(self.pairs), cols,
+                              scale, groups, lo, hi, start, P, nd2, entries, flat, source, B,
+                              ffi.cast("double *", band.ctypes.data), band.size)
+            return band
         products, scale, total = self._products
         H = out.transpose(1, 0, 2)[:, :, self._hess_cols] * scale  # (q, cells, pairs)
         B = np.empty(total)

@@ -9,6 +9,10 @@ default `~/.cache/fem-dual`), calls that kernel inside its loops. Where no compi
 What it holds:
 - `rk4`: classical Runge-Kutta in Nystrom form, the loop of
   fem_dual.base_state.FlowPredictor (the same stages and sums), with the force from its kernel.
+- `band`: the Jacobian's band of fem_dual.local_action.LocalAction from the Hessian of the
+  density at the quadrature points: the products of each Hessian group with its basis table and
+  their scatter into the band, in one pass (numpy: a gather, a matrix product per group, a
+  gather and a bincount).
 """
 from __future__ import annotations
 
@@ -52,6 +56,41 @@ static void accel(kernel_t F, const double *c, int n, double scale, const double
         for (j = 0; j < n; ++j) s += minv[i * n + j] * f[j];
         a[i] = s;
     }
+}
+
+/* The band of LocalAction._band: for each Hessian group g (pairs lo[g] .. hi[g] - 1, basis
+   table P_g (nd2, nq), given transposed: PT_g (nq, nd2) at PT + g nq nd2),
+   B[start[g] + (ab cells + e) members + m - lo[g]] = sum_q P_g[ab, q] out[e, q, cols[m]]
+   scale[e, m]; then band[flat[k]] += B[source[k]]. band (zeroed here) and B are the
+   caller's. */
+void fem_dual_band(int cells, int nq, int ncols, const double *out, int npairs,
+                   const int64_t *cols, const double *scale, int ngroups, const int64_t *lo,
+                   const int64_t *hi, const int64_t *start, const double *PT, int nd2,
+                   int64_t entries, const int64_t *flat, const int64_t *source, double *B,
+                   double *band, int64_t band_size)
+{
+    int g, e, m, q, ab;
+    int64_t k;
+    double acc[1024];
+    for (g = 0; g < ngroups; ++g) {
+        const double *Pg = PT + (int64_t)g * nd2 * nq;
+        int members = (int)(hi[g] - lo[g]);
+        for (e = 0; e < cells; ++e) {
+            for (m = (int)lo[g]; m < hi[g]; ++m) {
+                const double sc = scale[(int64_t)e * npairs + m];
+                double *Bm = B + start[g] + (int64_t)e * members + (m - lo[g]);
+                for (ab = 0; ab < nd2; ++ab) acc[ab] = 0.0;
+                for (q = 0; q < nq; ++q) {
+                    const double h = out[((int64_t)e * nq + q) * ncols + cols[m]] * sc;
+                    const double *row = Pg + (int64_t)q * nd2;
+                    for (ab = 0; ab < nd2; ++ab) acc[ab] += row[ab] * h;
+                }
+                for (ab = 0; ab < nd2; ++ab) Bm[(int64_t)ab * cells * members] = acc[ab];
+            }
+        }
+    }
+    memset(band, 0, band_size * sizeof(double));
+    for (k = 0; k < entries; ++k) band[flat[k]] += B[source[k]];
 }
 
 /* Classical RK4 of x' = v, v' = a(x) in Nystrom form over `steps` steps of length h from z0 =
@@ -101,11 +140,17 @@ int fem_dual_rk4(uintptr_t kernel, const double *c, int n, int steps, double h, 
 """
 
 _CDEF = """
+void fem_dual_band(int cells, int nq, int ncols, const double *out, int npairs,
+                   const int64_t *cols, const double *scale, int ngroups, const int64_t *lo,
+                   const int64_t *hi, const int64_t *start, const double *PT, int nd2,
+                   int64_t entries, const int64_t *flat, const int64_t *source, double *B,
+                   double *band, int64_t band_size);
 int fem_dual_rk4(uintptr_t kernel, const double *c, int n, int steps, double h, double scale,
                  const double *minv, const double *z0, double *states, double *rates,
                  double *work);
 """
 
+_FLAGS = ("-O3", "-fPIC", "-shared")  # no -march=native: the same code on every machine
 _loaded: Dict[str, object] = {}
 
 
@@ -129,7 +174,7 @@ def _compile(target: Path) -> None:
         source = Path(tmp) / "fem_dual_native.c"
         source.write_text(_SOURCE)
         built = Path(tmp) / target.name
-        subprocess.run([compiler, "-O2", "-fPIC", "-shared", "-o", str(built), str(source),
+        subprocess.run([compiler, "-O3", "-fPIC", "-shared", "-o", str(built), str(source),
                         "-lm"], check=True, capture_output=True, timeout=120)
         os.replace(built, target)
 
@@ -143,7 +188,7 @@ def library():
     try:
         import cffi
 
-        digest = hashlib.sha256((_SOURCE + _CDEF).encode()).hexdigest()[:16]
+        digest = hashlib.sha256((_SOURCE + _CDEF + " ".join(_FLAGS)).encode()).hexdigest()[:16]
         target = _cache_dir() / f"native-{digest}.so"
         if not target.exists():
             _compile(target)

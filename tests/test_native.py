@@ -73,3 +73,24 @@ def test_runs_without_the_compiled_loops_give_the_same_answer(monkeypatch):
     assert compiled.status == fallback.status == "ok"
     assert np.abs(compiled.x - fallback.x).max() <= 1e-13
     assert abs(compiled.error_estimate - fallback.error_estimate) <= 1e-6 * fallback.error_estimate
+
+
+@pytest.mark.parametrize("scene, degree, cells", [("curl3d", 6, 3), ("curl2d", 4, 2),
+                                                  ("curl2d-lifted", 3, 2), ("curl3d", 10, 1)])
+def test_compiled_band_is_the_numpy_band(scene, degree, cells):
+    from fem_dual.driver import Simulation
+
+    config = RunConfig.create(scene, T=1, cells=cells, degree=degree, staging="off",
+                              reference="none")
+    sim = Simulation.for_config(config)
+    try:
+        sim.run(config)
+        local = sim.solver.local
+        assert local._native_band is not None
+        local.set_state(np.random.default_rng(3).uniform(-0.05, 0.05, local.size))
+        _, compiled = local.residual_and_jacobian()
+        local._native_band = None
+        _, numpy_band = local.residual_and_jacobian()
+    finally:
+        sim.close()
+    assert np.abs(compiled - numpy_band).max() <= 1e-14 * np.abs(numpy_band).max()
