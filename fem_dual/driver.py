@@ -698,6 +698,17 @@ def _volume_kept(comm: MPI.Comm, sim: Simulation, z: np.ndarray, t0: float, dt: 
                            "a fast or unstable part of the motion, which the estimate cannot see")
 
 
+def _compiled_loops(sim: "Simulation") -> List[str]:
+    """Which inner loops of the run ran in compiled code (fem_dual.native): "rk4" (the rk4
+    base), "band" (the pointwise Jacobian's band)."""
+    loops = []
+    if getattr(getattr(sim.problem, "predictor", None), "compiled", False):
+        loops.append("rk4")
+    if getattr(getattr(sim.solver, "local", None), "compiled_band", False):
+        loops.append("band")
+    return loops
+
+
 def _solves(sim: Simulation) -> int:
     """Slab solves of the answer (tangents not counted) or of the companion."""
     if sim.superposition is not None:
@@ -1136,6 +1147,7 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool,
         record["assembly"] = ("pointwise" if sim.pointwise  # (never with kronecker)
                               else "kronecker" if sim.kronecker else "forms")
         record["base"] = config.base_state
+        record["compiled_loops"] = _compiled_loops(sim)
         if scene.linear:
             record["coordinates"] = "modal" if sim.modal is not None else "physical"
         record["slab_solves"] = _solves(sim)

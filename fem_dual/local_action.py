@@ -350,6 +350,11 @@ class LocalAction:
         self._both_at = (self.problem.version, self.problem.w.x.array.copy(), R)
         return R, self._band(out)
 
+    @property
+    def compiled_band(self) -> bool:
+        """Whether the Jacobian's band is assembled in compiled code (fem_dual.native)."""
+        return self._native_band is not None
+
     def _compiled_band(self) -> None:
         """Hold what the compiled band (fem_dual.native) reads, as C pointers, where the
         compiled loops are available."""
