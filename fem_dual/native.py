@@ -194,7 +194,12 @@ def library():
             _compile(target)
         ffi = cffi.FFI()
         ffi.cdef(_CDEF)
-        result = (ffi, ffi.dlopen(str(target)))
+        try:
+            lib = ffi.dlopen(str(target))
+        except OSError:  # a damaged file (a compile killed before the rename cannot leave one)
+            _compile(target)
+            lib = ffi.dlopen(str(target))
+        result = (ffi, lib)
     except (ImportError, OSError, subprocess.SubprocessError) as exc:
         _loaded["reason"] = f"{type(exc).__name__}: {exc}"
     _loaded["lib"] = result

@@ -94,3 +94,26 @@ def test_compiled_band_is_the_numpy_band(scene, degree, cells):
     finally:
         sim.close()
     assert np.abs(compiled - numpy_band).max() <= 1e-14 * np.abs(numpy_band).max()
+
+
+def test_a_damaged_library_in_the_cache_is_built_again(tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "first"))
+    monkeypatch.setattr(native, "_loaded", {})
+    assert native.library() is not None
+    (built,) = (tmp_path / "first" / "fem-dual").glob("native-*.so")
+    damaged = tmp_path / "second" / "fem-dual" / built.name  # (not the file this process
+    damaged.parent.mkdir(parents=True)                       # has mapped: a new path)
+    damaged.write_bytes(b"not a library")  # as a disk that filled up, or a user's edit
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "second"))
+    monkeypatch.setattr(native, "_loaded", {})
+    assert native.library() is not None
+    assert damaged.read_bytes() == built.read_bytes()
+
+
+def test_no_compiler_means_the_numpy_loops(tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    monkeypatch.setenv("PATH", str(tmp_path))  # no cc, no gcc
+    monkeypatch.setattr(native, "_loaded", {})
+    monkeypatch.setattr("sysconfig.get_config_var", lambda name: "no-such-cc")
+    assert native.library() is None and "compiler" in native.reason()
+    assert FlowPredictor(get_scene("curl3d")(), 4).compiled is False
