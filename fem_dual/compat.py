@@ -96,6 +96,11 @@ class CellPointEvaluator:
         points = self._points.shape[0]
         return values.reshape(len(cells), points, values.shape[1] // points)
 
+    @property
+    def compiled(self) -> fem.Expression:
+        """The compiled expression (its kernel and coefficients: fem_dual.native)."""
+        return self._expr
+
     def into(self, cells: np.ndarray, out: np.ndarray) -> np.ndarray:
         """Evaluate into `out` (int32 `cells`; float64 (cells, points * value_size), zeroed by
         the caller where the expression has an argument): 0.5.2's `eval` checks the shapes and

@@ -33,6 +33,7 @@ from fem_dual.output import check_output_dir_on_root
 from fem_dual.sinks import (AcceptedSlab, Accumulator, PartialBatch, ProgressSink, Restart,
                             SlabBatch, XdmfSink)
 from fem_dual import faults
+from fem_dual.local_action import quiet_numpy
 from fem_dual.newton import NO_PROGRESS_ITS, NewtonSlabSolver
 from fem_dual.pointwise_newton import PointwiseLinearSolver, PointwiseNewtonSolver
 from fem_dual.problem import SlabProblem
@@ -507,7 +508,8 @@ class Simulation:
             raise ValueError("the configuration does not match the compiled simulation")
         self.begin(config)
         self.companion.begin(config)
-        return _run_slabs(self, config, progress, resume)
+        with quiet_numpy():  # (overflows are judged: the run says what failed, once)
+            return _run_slabs(self, config, progress, resume)
 
 
 def check_resolution(rate: Optional[float], dt: float, cells: int, degree: int) -> None:
@@ -700,12 +702,14 @@ def _volume_kept(comm: MPI.Comm, sim: Simulation, z: np.ndarray, t0: float, dt: 
 
 def _compiled_loops(sim: "Simulation") -> List[str]:
     """Which inner loops of the run ran in compiled code (fem_dual.native): "rk4" (the rk4
-    base), "band" (the pointwise Jacobian's band)."""
+    base), "band" (the pointwise Jacobian's band), "dtp" (the implicit DtP map's Newton)."""
     loops = []
     if getattr(getattr(sim.problem, "predictor", None), "compiled", False):
         loops.append("rk4")
     if getattr(getattr(sim.solver, "local", None), "compiled_band", False):
         loops.append("band")
+    if getattr(getattr(sim.problem, "pointwise", None), "compiled", False):
+        loops.append("dtp")
     return loops
 
 

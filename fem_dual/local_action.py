@@ -20,7 +20,8 @@ a few hundred, which one core factors in microseconds.
 """
 from __future__ import annotations
 
-from typing import Optional, Tuple
+from contextlib import contextmanager
+from typing import Iterator, Optional, Tuple
 
 import basix
 import numpy as np
@@ -31,29 +32,39 @@ from scipy.linalg import lapack
 from fem_dual.compat import CellPointEvaluator
 from fem_dual.problem import SlabProblem
 
-__all__ = ["LocalAction", "BandedLU"]
+__all__ = ["LocalAction", "BandedLU", "quiet_numpy"]
 
 
-_QUIET = [0]  # how many _quiet methods are running (one np.errstate is enough)
+_QUIET = [0]  # how many quiet blocks are running (one np.errstate is enough)
+
+
+@contextmanager
+def quiet_numpy() -> Iterator[None]:
+    """numpy's floating-point warnings off: a state that overflows gives inf or NaN, which the
+    Newton and the driver judge (a warning would be a second message). Inside another such
+    block the warnings are off already, and no np.errstate is entered again (5 us a call: a run
+    of the slab loop enters one for all its pointwise calls, fem_dual.driver.Simulation.run)."""
+    if _QUIET[0]:
+        yield
+        return
+    _QUIET[0] += 1
+    try:
+        with np.errstate(all="ignore"):
+            yield
+    finally:
+        _QUIET[0] -= 1
 
 
 def _quiet(method):
-    """Run `method` with numpy's floating-point warnings off: a state that overflows gives
-    inf or NaN, which the Newton and the driver judge (a warning would be a second message).
-    Inside another such method the warnings are off already (np.errstate costs 5 us a call,
-    a dozen calls a slab)."""
+    """Run `method` within quiet_numpy."""
     import functools
 
     @functools.wraps(method)
     def wrapped(*args, **kwargs):
         if _QUIET[0]:
             return method(*args, **kwargs)
-        _QUIET[0] += 1
-        try:
-            with np.errstate(all="ignore"):
-                return method(*args, **kwargs)
-        finally:
-            _QUIET[0] -= 1
+        with quiet_numpy():
+            return method(*args, **kwargs)
     return wrapped
 
 

@@ -13,6 +13,9 @@ What it holds:
   density at the quadrature points: the products of each Hessian group with its basis table and
   their scatter into the band, in one pass (numpy: a gather, a matrix product per group, a
   gather and a bincount).
+- `dtp_newton`: the Newton iteration of fem_dual.pointwise.PointwiseDtP (an implicit DtP map
+  solved at every point), the same steps and stopping rule, with G and G_x from the kernel of
+  its expression (`PackedExpression` packs that kernel's coefficients as DOLFINx does).
 """
 from __future__ import annotations
 
@@ -26,7 +29,7 @@ from typing import Dict, Optional
 
 import numpy as np
 
-__all__ = ["library", "reason", "CompiledForce", "pointer"]
+__all__ = ["library", "reason", "CompiledForce", "PackedExpression", "pointer"]
 
 _SOURCE = r"""
 #include <math.h>
@@ -93,6 +96,97 @@ void fem_dual_band(int cells, int nq, int ncols, const double *out, int npairs,
     for (k = 0; k < entries; ++k) band[flat[k]] += B[source[k]];
 }
 
+/* x = A^-1 b for one n x n matrix (row-major; n = 2 by the closed form of
+   fem_dual.pointwise._solve, else Gaussian elimination with partial pivoting). A is kept. */
+static void small_solve(int n, const double *A, const double *b, double *x, double *work)
+{
+    int i, j, k, piv;
+    if (n == 2) {
+        double det = A[0] * A[3] - A[1] * A[2];
+        x[0] = (A[3] * b[0] - A[1] * b[1]) / det;
+        x[1] = (A[0] * b[1] - A[2] * b[0]) / det;
+        return;
+    }
+    memcpy(work, A, n * n * sizeof(double));
+    memcpy(x, b, n * sizeof(double));
+    for (k = 0; k < n; ++k) {
+        piv = k;
+        for (i = k + 1; i < n; ++i)
+            if (fabs(work[i * n + k]) > fabs(work[piv * n + k])) piv = i;
+        if (piv != k) {
+            double t;
+            for (j = 0; j < n; ++j) {
+                t = work[k * n + j]; work[k * n + j] = work[piv * n + j]; work[piv * n + j] = t;
+            }
+            t = x[k]; x[k] = x[piv]; x[piv] = t;
+        }
+        for (i = k + 1; i < n; ++i) {
+            double f = work[i * n + k] / work[k * n + k];
+            for (j = k; j < n; ++j) work[i * n + j] -= f * work[k * n + j];
+            x[i] -= f * x[k];
+        }
+    }
+    for (i = n - 1; i >= 0; --i) {
+        double s = x[i];
+        for (j = i + 1; j < n; ++j) s -= work[i * n + j] * x[j];
+        x[i] = s / work[i * n + i];
+    }
+}
+
+/* The Newton iteration of PointwiseDtP.solve on all cells at once: evaluate (G, G_x, t) at
+   every point (kernel of the packed expression: `packed` (cells, wsize) holds its
+   coefficients, X's values at columns xslot[p n + k] of a cell's row), step = G_x^-1 G, stop
+   on a step that is not finite (returns 1) or after the step at which max |step| <=
+   last_step (1 + max |X|) (returns 0), else 2 after max_it + 1 evaluations. X (the point
+   function's values, block index xdofs[e points + p]) and the packed rows follow every step;
+   `out` keeps the last evaluation, `step` the last step, *iterations the last iteration. */
+int fem_dual_dtp_newton(uintptr_t kernel, int cells, int points, int n, int wsize,
+                        double *packed, const int64_t *xslot, const double *c,
+                        const double *coords, int max_it, double last_step, double *out,
+                        double *step, double *X, const int64_t *xdofs, double *work,
+                        int *iterations)
+{
+    kernel_t K = (kernel_t)kernel;
+    const int local = 0;
+    const uint8_t perm = 0;
+    const int width = n + n * n + 1;
+    const int64_t total = (int64_t)cells * points;
+    int it, e, p, k;
+    int64_t i;
+    for (it = 0; it <= max_it; ++it) {
+        double largest = 0.0, current = 0.0;
+        int finite = 1;
+        *iterations = it;
+        memset(out, 0, total * width * sizeof(double));
+        for (e = 0; e < cells; ++e)
+            K(out + (int64_t)e * points * width, packed + (int64_t)e * wsize, c,
+              coords + (int64_t)e * 6, &local, &perm);
+        for (i = 0; i < total; ++i) {
+            const double *o = out + i * width;
+            small_solve(n, o + n, o, step + i * n, work);
+            for (k = 0; k < n; ++k) {
+                double s = step[i * n + k];
+                if (!isfinite(s)) finite = 0;
+                else if (fabs(s) > largest) largest = fabs(s);
+            }
+        }
+        if (!finite) return 1;
+        for (e = 0; e < cells; ++e)
+            for (p = 0; p < points; ++p) {
+                int64_t block = xdofs[(int64_t)e * points + p];
+                for (k = 0; k < n; ++k) {
+                    double x = X[block * n + k];
+                    if (fabs(x) > current) current = fabs(x);
+                    x -= step[((int64_t)e * points + p) * n + k];
+                    X[block * n + k] = x;
+                    packed[(int64_t)e * wsize + xslot[p * n + k]] = x;
+                }
+            }
+        if (largest <= last_step * (1.0 + current)) return 0;
+    }
+    return 2;
+}
+
 /* Classical RK4 of x' = v, v' = a(x) in Nystrom form over `steps` steps of length h from z0 =
    (x, v): states and rates (steps + 1, 2n), rates = (v, a(x)). work: 7 n doubles. Returns 0, or
    1 where a value is not finite (the loop stops there). */
@@ -140,6 +234,11 @@ int fem_dual_rk4(uintptr_t kernel, const double *c, int n, int steps, double h, 
 """
 
 _CDEF = """
+int fem_dual_dtp_newton(uintptr_t kernel, int cells, int points, int n, int wsize,
+                        double *packed, const int64_t *xslot, const double *c,
+                        const double *coords, int max_it, double last_step, double *out,
+                        double *step, double *X, const int64_t *xdofs, double *work,
+                        int *iterations);
 void fem_dual_band(int cells, int nq, int ncols, const double *out, int npairs,
                    const int64_t *cols, const double *scale, int ngroups, const int64_t *lo,
                    const int64_t *hi, const int64_t *start, const double *PT, int nd2,
@@ -212,10 +311,12 @@ def reason() -> Optional[str]:
 
 
 def pointer(ffi, array: Optional[np.ndarray], kind: str = "double *"):
-    """A C pointer to a C-contiguous float64 array (NULL for None), valid while it lives."""
+    """A C pointer to a C-contiguous array of the C type `kind` points to (NULL for None); the
+    pointer keeps the array alive while it lives (a temporary array passed to a call stays
+    valid through the call)."""
     if array is None:
         return ffi.NULL
-    return ffi.cast(kind, array.ctypes.data)
+    return ffi.from_buffer(kind.replace("*", "[]"), array)
 
 
 class CompiledForce:
@@ -265,3 +366,60 @@ class CompiledForce:
         for key, value in scene.constants().items():
             self.c[key].value = value
         return np.ascontiguousarray(self._pack(), dtype=np.float64)
+
+
+class PackedExpression:
+    """A compiled `fem.Expression` with its coefficients packed as DOLFINx packs them for its
+    kernel (a row per cell: each coefficient's cell values, dof by dof and component by
+    component, in the kernel's order), for the compiled loops that call the kernel themselves.
+    Elements on an interval need no dof transformation (Lagrange, DG, Quadrature).
+
+    Args:
+        expr: the expression (0.5.2's fem.Expression).
+        cells: the cells (int32) whose rows are packed.
+    """
+
+    def __init__(self, expr, cells: np.ndarray):
+        import cffi
+        import ufl
+        from dolfinx import cpp
+
+        ufcx = expr.ufcx_expression
+        original = ufl.algorithms.extract_coefficients(expr.ufl_expression)
+        self.coefficients = [original[ufcx.original_coefficient_positions[i]]
+                             for i in range(ufcx.num_coefficients)]
+        self.cells = np.asarray(cells, dtype=np.int32)
+        columns, self._slots = [], {}
+        offset = 0
+        for f in self.coefficients:
+            V = f.function_space
+            bs = V.dofmap.index_map_bs
+            dofs = V.dofmap.list.array.reshape(len(V.dofmap.list.offsets) - 1, -1)[self.cells]
+            index = (dofs[:, :, None] * bs + np.arange(bs)).reshape(len(self.cells), -1)
+            columns.append((f, index))
+            self._slots[id(f)] = offset + np.arange(index.shape[1])
+            offset += index.shape[1]
+        self._columns = columns
+        self.width = offset
+        self.packed = np.zeros((len(self.cells), max(offset, 1)))
+        msh = expr.ufl_expression.ufl_domain().ufl_cargo()
+        geometry = msh.geometry.dofmap.array.reshape(-1, 2)[self.cells]
+        self.coords = np.ascontiguousarray(msh.geometry.x[geometry].reshape(len(self.cells), 6))
+        self._constants = lambda: cpp.fem.pack_constants(expr._cpp_object)
+        self.kernel = int(cffi.FFI().cast("uintptr_t", ufcx.tabulate_tensor_float64))
+
+    def pack(self) -> np.ndarray:
+        """The rows of the coefficients' current values."""
+        start = 0
+        for f, index in self._columns:
+            self.packed[:, start:start + index.shape[1]] = f.x.array[index]
+            start += index.shape[1]
+        return self.packed
+
+    def slot(self, f) -> np.ndarray:
+        """The columns of a row that hold the coefficient `f`'s cell values."""
+        return self._slots[id(f)]
+
+    def constants(self) -> np.ndarray:
+        """The kernel's constants at their current values."""
+        return np.ascontiguousarray(self._constants(), dtype=np.float64)

@@ -29,6 +29,7 @@ __all__ = ["PointwiseDtP", "BRANCH_TOL"]
 
 BRANCH_TOL = 1e-3  # lambda_min / lambda_max of G_x below this: leaving the base state branch
 LAST_STEP = 1e-8  # a relative Newton step below this is the last one
+CONVERGED, NOT_FINITE, NOT_CONVERGED = 0, 1, 2  # how the pointwise Newton ended
 
 
 class PointwiseDtP:
@@ -61,8 +62,14 @@ class PointwiseDtP:
         self.dofs = space.dofmap.list.array.reshape(len(self.cells), len(points))
         self.Ginv = fem.Function(inverse_space) if inverse_space is not None else None
         self.iterations = 0
+        self._packed = None  # (the compiled loops, the packed expression), or False: numpy
         self._out = np.zeros((len(self.cells), len(points) * (n + n * n + 1)))
         self._shape = (len(self.cells), len(points), n + n * n + 1)
+
+    @property
+    def compiled(self) -> bool:
+        """Whether the Newton iteration ran in compiled code (fem_dual.native)."""
+        return bool(self._packed)
 
     def _evaluate(self) -> np.ndarray:
         """(cells, points, G then G_x then t) at the current X."""
@@ -81,33 +88,18 @@ class PointwiseDtP:
         n = self.n
         values = self.X.x.array.reshape(-1, self.n)
         start = values.copy()
-        problem = None
         with np.errstate(all="ignore"):  # NaN steps and ratios count as bad below
-            for it in range(max_it + 1):
-                out = self._evaluate()
-                G, Gx = out[..., :n], out[..., n:n + n * n].reshape(out.shape[:2] + (n, n))
-                step = _solve(Gx, G)
-                if not np.isfinite(step).all():
-                    problem = self._branch(Gx, out[..., -1]) or \
-                        "the DtP map produced a non-finite state"
-                    break
-                current = values[self.dofs]
-                values[self.dofs] = current - step
-                if np.abs(step).max() <= LAST_STEP * (1.0 + np.abs(current).max()):
-                    # quadratic convergence: after a step of 1e-8 the root is exact to
-                    # round-off, without one more evaluation to confirm it (G_x and its
-                    # inverse are those of the last iterate, 1e-8 away)
-                    problem = self._branch(Gx, out[..., -1])
-                    break
-            else:
+            status, out, step, it = self._iterate(max_it)
+            Gx = out[..., n:n + n * n].reshape(out.shape[:2] + (n, n))
+            problem = self._branch(Gx, out[..., -1])
+            if status == NOT_FINITE:
+                problem = problem or "the DtP map produced a non-finite state"
+            elif status == NOT_CONVERGED and problem is None:
                 t = out[..., -1]
-                problem = self._branch(Gx, t)
-                if problem is None:
-                    worst = np.unravel_index(np.argmax(np.abs(step).max(axis=-1)),
-                                             step.shape[:2])
-                    problem = (f"the DtP map has no solution near t = {t[worst]:.6g} (pointwise "
-                               f"Newton did not converge in {max_it} iterations); use smaller "
-                               "slabs or larger alpha")
+                worst = np.unravel_index(np.argmax(np.abs(step).max(axis=-1)), step.shape[:2])
+                problem = (f"the DtP map has no solution near t = {t[worst]:.6g} (pointwise "
+                           f"Newton did not converge in {max_it} iterations); use smaller "
+                           "slabs or larger alpha")
         self.iterations = it
         message = allreduce(comm, problem or "", "max")  # any rank's message, on every rank
         if message:
@@ -117,6 +109,59 @@ class PointwiseDtP:
             self.Ginv.x.array.reshape(-1, n * n)[self.dofs] = _inverse(Gx).reshape(
                 Gx.shape[0], Gx.shape[1], n * n)
         return None
+
+    def _iterate(self, max_it: int):
+        """Newton on every point from the current X: (status, the last evaluation (cells,
+        points, G then G_x then t), the last step, the last iteration). A step of 1e-8 is the
+        last (quadratic convergence: after it the root is exact to round-off, without one more
+        evaluation to confirm it; G_x and its inverse are those of the last iterate, 1e-8
+        away). In compiled code (fem_dual.native) where it is available."""
+        if self._packed is None:
+            from fem_dual import native
+
+            built = native.library()
+            self._packed = False if built is None else (built, native.PackedExpression(
+                self._eval.compiled, self.cells))
+        if self._packed:
+            return self._compiled_iterate(max_it)
+        n = self.n
+        values = self.X.x.array.reshape(-1, self.n)
+        for it in range(max_it + 1):
+            out = self._evaluate()
+            G, Gx = out[..., :n], out[..., n:n + n * n].reshape(out.shape[:2] + (n, n))
+            step = _solve(Gx, G)
+            if not np.isfinite(step).all():
+                return NOT_FINITE, out, step, it
+            current = values[self.dofs]
+            values[self.dofs] = current - step
+            if np.abs(step).max() <= LAST_STEP * (1.0 + np.abs(current).max()):
+                return CONVERGED, out, step, it
+        return NOT_CONVERGED, out, step, it
+
+    def _compiled_iterate(self, max_it: int):
+        """_iterate's loop in compiled code: the same steps, stopping rule and results."""
+        from fem_dual.native import pointer
+
+        (ffi, lib), packed = self._packed
+        n, cells, points = self.n, len(self.cells), len(self.points)
+        rows = packed.pack()
+        step = np.empty((cells, points, n))
+        it = ffi.new("int *")
+        status = lib.fem_dual_dtp_newton(
+            packed.kernel, cells, points, n, rows.shape[1], pointer(ffi, rows),
+            pointer(ffi, self._xslot(packed), "int64_t *"), pointer(ffi, packed.constants()),
+            pointer(ffi, packed.coords), max_it, LAST_STEP, pointer(ffi, self._out),
+            pointer(ffi, step), pointer(ffi, self.X.x.array),
+            pointer(ffi, self._xdofs, "int64_t *"), pointer(ffi, self._work), it)
+        return status, self._out.reshape(self._shape), step, it[0]
+
+    def _xslot(self, packed) -> np.ndarray:
+        slots = getattr(self, "_slots", None)
+        if slots is None:
+            slots = self._slots = np.ascontiguousarray(packed.slot(self.X), dtype=np.int64)
+            self._xdofs = np.ascontiguousarray(self.dofs, dtype=np.int64)
+            self._work = np.empty(self.n * self.n)
+        return slots
 
     @staticmethod
     def _branch(Gx: np.ndarray, t: np.ndarray) -> Optional[str]:

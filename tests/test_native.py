@@ -117,3 +117,47 @@ def test_no_compiler_means_the_numpy_loops(tmp_path, monkeypatch):
     monkeypatch.setattr("sysconfig.get_config_var", lambda name: "no-such-cc")
     assert native.library() is None and "compiler" in native.reason()
     assert FlowPredictor(get_scene("curl3d")(), 4).compiled is False
+
+
+def _dtp_pair(scene, params, scale, seed=5):
+    """The implicit DtP map solved at a random dual state by the compiled loop and by numpy:
+    (X, iterations, message) of each."""
+    from mpi4py import MPI
+
+    from fem_dual.driver import Simulation
+
+    config = RunConfig.create(scene, params, T=1, cells=3, degree=3, staging="off",
+                              reference="none", x0="0.5" if scene == "force" else None)
+    sim = Simulation.for_config(config)
+    try:
+        sim.run(config)
+        problem = sim.problem
+        dtp = problem.pointwise
+        rng = np.random.default_rng(seed)
+        dual = rng.uniform(-scale, scale, problem.w.x.array.size)
+        answers = []
+        for compiled in (True, False):
+            problem.w.x.array[:] = dual
+            dtp.reset(problem.x0.value)
+            if not compiled:
+                dtp._packed = False
+            message = dtp.solve(MPI.COMM_SELF)
+            answers.append((dtp.X.x.array.copy(), dtp.iterations, message))
+        return answers
+    finally:
+        sim.close()
+
+
+@pytest.mark.parametrize("scene, params", [("curl2d", None), ("curl3d-ufl", None),
+                                           ("force", {"F": "-sin(x) - x**3"})])
+def test_compiled_dtp_newton_is_the_numpy_iteration(scene, params):
+    (X, its, message), (X_numpy, its_numpy, message_numpy) = _dtp_pair(scene, params, 0.05)
+    assert message is None and message_numpy is None
+    assert its == its_numpy and its >= 1
+    assert np.abs(X - X_numpy).max() <= 1e-13 * np.abs(X_numpy).max()
+
+
+def test_compiled_dtp_newton_fails_as_the_numpy_iteration():
+    """Dual values far off the base state's branch: the same refusal, naming the same time."""
+    (_, its, message), (_, its_numpy, message_numpy) = _dtp_pair("curl2d", None, 50.0)
+    assert message is not None and message == message_numpy and its == its_numpy
