@@ -249,6 +249,7 @@ int fem_dual_rk4(uintptr_t kernel, const double *c, int n, int steps, double h, 
                  double *work);
 """
 
+_SYMBOLS = ("fem_dual_rk4", "fem_dual_band", "fem_dual_dtp_newton")
 _FLAGS = ("-O3", "-fPIC", "-shared")  # no -march=native: the same code on every machine
 _loaded: Dict[str, object] = {}
 
@@ -258,9 +259,15 @@ def _cache_dir() -> Path:
     return Path(root) / "fem-dual"
 
 
+def _fingerprint(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
 def _compile(target: Path) -> None:
-    """Compile the library into `target` (written under another name, then renamed: processes
-    that compile at once each leave a whole file)."""
+    """Compile the library into `target`, and its fingerprint (sha256) beside it. Both are
+    written under other names, then renamed: processes that compile at once each leave whole
+    files, and a library whose fingerprint does not match is not loaded (a truncated one that
+    dlopen accepts kills the process with SIGBUS when a function is called)."""
     import sysconfig
 
     compiler = (sysconfig.get_config_var("CC") or "cc").split()[0]
@@ -273,14 +280,30 @@ def _compile(target: Path) -> None:
         source = Path(tmp) / "fem_dual_native.c"
         source.write_text(_SOURCE)
         built = Path(tmp) / target.name
-        subprocess.run([compiler, "-O3", "-fPIC", "-shared", "-o", str(built), str(source),
-                        "-lm"], check=True, capture_output=True, timeout=120)
+        subprocess.run([compiler, *_FLAGS, "-o", str(built), str(source), "-lm"], check=True,
+                       capture_output=True, timeout=120)
+        stamp = Path(tmp) / "fingerprint"
+        stamp.write_text(_fingerprint(built))
         os.replace(built, target)
+        os.replace(stamp, _stamp(target))
+
+
+def _stamp(target: Path) -> Path:
+    return target.with_suffix(".sha256")
+
+
+def _intact(target: Path) -> bool:
+    """Whether `target` is the library its fingerprint was taken of."""
+    try:
+        return _stamp(target).read_text() == _fingerprint(target)
+    except OSError:
+        return False
 
 
 def library():
     """(ffi, lib) of the compiled loops, compiled on first use and kept; None where it cannot
-    be built or loaded (`reason()` says why)."""
+    be built or loaded (`reason()` says why). A library in the cache that is not the one
+    compiled there (damaged, truncated, replaced) is compiled again."""
     if "lib" in _loaded:
         return _loaded["lib"]
     result = None
@@ -289,17 +312,15 @@ def library():
 
         digest = hashlib.sha256((_SOURCE + _CDEF + " ".join(_FLAGS)).encode()).hexdigest()[:16]
         target = _cache_dir() / f"native-{digest}.so"
-        if not target.exists():
+        if not _intact(target):
             _compile(target)
         ffi = cffi.FFI()
         ffi.cdef(_CDEF)
-        try:
-            lib = ffi.dlopen(str(target))
-        except OSError:  # a damaged file (a compile killed before the rename cannot leave one)
-            _compile(target)
-            lib = ffi.dlopen(str(target))
+        lib = ffi.dlopen(str(target))
+        for name in _SYMBOLS:  # (AttributeError where one is missing)
+            getattr(lib, name)
         result = (ffi, lib)
-    except (ImportError, OSError, subprocess.SubprocessError) as exc:
+    except (ImportError, OSError, AttributeError, subprocess.SubprocessError) as exc:
         _loaded["reason"] = f"{type(exc).__name__}: {exc}"
     _loaded["lib"] = result
     return result

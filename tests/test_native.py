@@ -1,6 +1,7 @@
 """Issue 17: the compiled loops (fem_dual.native) compute what their numpy twins compute, on the
 scene's UFL force compiled by FFCx; where they cannot be built, the numpy loops run instead."""
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -96,14 +97,25 @@ def test_compiled_band_is_the_numpy_band(scene, degree, cells):
     assert np.abs(compiled - numpy_band).max() <= 1e-14 * np.abs(numpy_band).max()
 
 
-def test_a_damaged_library_in_the_cache_is_built_again(tmp_path, monkeypatch):
+@pytest.mark.parametrize("damage", ["empty", "truncated", "another library"])
+def test_a_damaged_library_in_the_cache_is_built_again(tmp_path, monkeypatch, damage):
+    """A library file that is not the one compiled (found by the hostile test: a truncated one
+    that dlopen accepted killed the run with SIGBUS; one without the functions, a traceback)."""
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "first"))
     monkeypatch.setattr(native, "_loaded", {})
     assert native.library() is not None
     (built,) = (tmp_path / "first" / "fem-dual").glob("native-*.so")
-    damaged = tmp_path / "second" / "fem-dual" / built.name  # (not the file this process
-    damaged.parent.mkdir(parents=True)                       # has mapped: a new path)
-    damaged.write_bytes(b"not a library")  # as a disk that filled up, or a user's edit
+    cache = tmp_path / "second" / "fem-dual"  # (not the file this process has mapped)
+    cache.mkdir(parents=True)
+    for name in (built.name, built.with_suffix(".sha256").name):  # as a whole cache first
+        (cache / name).write_bytes((built.parent / name).read_bytes())
+    damaged = cache / built.name
+    import ctypes.util
+
+    libm = next(p for p in (ctypes.util.find_library("m") or "", "/lib/x86_64-linux-gnu/libm.so.6",
+                            "/usr/lib/x86_64-linux-gnu/libm.so.6") if Path(p).is_file())
+    damaged.write_bytes({"empty": b"", "truncated": built.read_bytes()[:5000],
+                         "another library": Path(libm).read_bytes()}[damage])
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "second"))
     monkeypatch.setattr(native, "_loaded", {})
     assert native.library() is not None
