@@ -32,7 +32,7 @@ from fem_dual.mpi import allreduce, bcast, input_on_root, root_first
 from fem_dual.output import check_output_dir_on_root
 from fem_dual.sinks import (AcceptedSlab, Accumulator, PartialBatch, ProgressSink, Restart,
                             SlabBatch, XdmfSink)
-from fem_dual import faults
+from fem_dual import faults, native
 from fem_dual.local_action import quiet_numpy
 from fem_dual.newton import NO_PROGRESS_ITS, NewtonSlabSolver
 from fem_dual.pointwise_newton import PointwiseLinearSolver, PointwiseNewtonSolver
@@ -130,7 +130,7 @@ class RunResult:
             stream.flush()
 
     def _write_json(self, stream, chunk: int) -> None:
-        head = self.to_dict(arrays=False)
+        head = _null_where_not_finite(self.to_dict(arrays=False))
         stream.write(json.dumps(head, allow_nan=False)[:-1])
         for name in ("t", "x", "v"):
             values = getattr(self, name)
@@ -700,6 +700,19 @@ def _volume_kept(comm: MPI.Comm, sim: Simulation, z: np.ndarray, t0: float, dt: 
                            "a fast or unstable part of the motion, which the estimate cannot see")
 
 
+def _null_where_not_finite(value):
+    """`value` (JSON-like) with every float that is not finite replaced by None: the residual
+    history of a failed Newton can hold inf, which JSON has no number for (the vertex arrays
+    are finite: a run keeps only the slabs it accepted)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _null_where_not_finite(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_null_where_not_finite(v) for v in value]
+    return value
+
+
 def _compiled_loops(sim: "Simulation") -> List[str]:
     """Which inner loops of the run ran in compiled code (fem_dual.native): "rk4" (the rk4
     base), "band" (the pointwise Jacobian's band), "dtp" (the implicit DtP map's Newton)."""
@@ -1152,6 +1165,7 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool,
                               else "kronecker" if sim.kronecker else "forms")
         record["base"] = config.base_state
         record["compiled_loops"] = _compiled_loops(sim)
+        record["compiled_loops_unavailable"] = native.reason()  # why none ran, or None
         if scene.linear:
             record["coordinates"] = "modal" if sim.modal is not None else "physical"
         record["slab_solves"] = _solves(sim)

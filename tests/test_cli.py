@@ -183,3 +183,15 @@ def test_version(capsys):
         main(["--version"])
     assert exit_info.value.code == 0
     assert capsys.readouterr().out.strip() == f"fem-dual {__version__}"
+
+
+def test_a_failed_run_writes_its_partial_json_with_infinite_residuals_as_null(capsys):
+    """A rejected attempt whose first residual overflowed kept inf in the residual history:
+    the partial result's JSON raised ValueError (a traceback, exit 1) instead of exit 3 with
+    the slabs kept (found by the session 16 hostile test; it predates the session)."""
+    assert main(["run", "curl3d", "--base", "rk4", "--T", "40", "--rtol", "1e-10", "--degree",
+                 "6", "--cells", "8", "--json"]) == 3
+    data = json.loads(capsys.readouterr().out)
+    assert data["status"] == "failed" and len(data["t"]) > 1
+    assert None in data["solver"]["residual_norms"]
+    assert np.isfinite(np.array(data["x"])).all()
