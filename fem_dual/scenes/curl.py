@@ -57,9 +57,13 @@ class ForceScene(Scene):
         return None
 
     def reference(self, x0, v0):
+        """DOP853 on x'' = M^-1 F(x) (a scene file may give a mass matrix other than m I)."""
         from fem_dual.reference import IVPFlow
 
-        return IVPFlow(lambda x: self.force_numpy(x) / self.m, x0, v0)
+        M = self.mass_matrix()
+        if np.array_equal(M, self.m * np.eye(self.n)):
+            return IVPFlow(lambda x: self.force_numpy(x) / self.m, x0, v0)
+        return IVPFlow(lambda x: np.linalg.solve(M, self.force_numpy(x)), x0, v0)
 
     def quadrature_degree(self, degree: int) -> int:
         # The reduced Lagrangian is not polynomial (A(eta)^-1, or the implicit map): quadrature
