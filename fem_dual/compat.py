@@ -82,11 +82,27 @@ class CellPointEvaluator:
 
     0.5.2's `fem.Expression.eval(cells)` returns a flat (cells, points * value_size) array; this
     reshapes it to (cells, points, value_size).
+
+    0.5.2's `fem.Expression` packs the constants of the expression as given, while FFCx's
+    kernel reads those left after it expands the derivatives: a constant that a derivative
+    removes (the parameter of a force F = a in dG/dx) shifted every later constant into the
+    wrong slot (`force --F a --param a=-2` read H's weight from a, and the DtP map was refused
+    as singular). The derivatives are expanded here first, so both see the same constants, and
+    a kernel that reads another number of constants stops at set-up.
     """
 
     def __init__(self, expr: ufl.core.expr.Expr, ref_points: np.ndarray):
+        from ufl.algorithms import expand_derivatives
+        from ufl.algorithms.analysis import extract_constants
+
         self._points = np.asarray(ref_points, dtype=np.float64).reshape(-1, 1)
-        self._expr = fem.Expression(expr, self._points)
+        expanded = expand_derivatives(expr)
+        self._expr = fem.Expression(expanded, self._points)
+        packed = len(extract_constants(expanded))
+        if packed != self._expr.ufcx_expression.num_constants:
+            raise RuntimeError(f"the compiled expression reads "
+                               f"{self._expr.ufcx_expression.num_constants} constants where "
+                               f"{packed} are packed")
         self.value_size = self._expr.value_size
         self.expression = expr
 

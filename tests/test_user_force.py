@@ -59,3 +59,17 @@ def test_user_force_parameters_are_validated():
     from fem_dual import InputError
     with pytest.raises(InputError, match="beta"):
         Swirl.from_params({"beta": "0"})
+
+
+@pytest.mark.parametrize("a", [-2.0, 0.5])
+def test_a_parameter_that_derivatives_remove_keeps_the_other_constants_in_place(a):
+    """F = a leaves G_x = alpha without a: 0.5.2's Expression packed a anyway, and every later
+    constant slid into the wrong slot of the kernel (exit 3, 'DtP map is near singular', for
+    a < 1; found by the session 16 hostile test). F = -x - a is F = -x about x = -a: the same
+    motion shifted, to round-off."""
+    common = dict(T=2, cells=4, degree=4, staging="off")
+    r = run(RunConfig.create("force", {"F": "a", "a": str(a)}, x0="0.5", **common))
+    assert r.status == "ok" and r.error["x_max"] <= r.error_estimate
+    shifted = run(RunConfig.create("force", {"F": "-x-a", "a": str(a)}, x0="0.5", **common))
+    plain = run(RunConfig.create("force", {"F": "-x"}, x0=str(0.5 + a), **common))
+    assert np.abs((shifted.x + a) - plain.x).max() <= 1e-12
