@@ -366,7 +366,7 @@ class CompiledForce:
         from dolfinx import cpp, fem, mesh
         from mpi4py import MPI
 
-        from fem_dual.compat import constant, quiet_jit_logging, vector_space
+        from fem_dual.compat import CellPointEvaluator, constant, quiet_jit_logging, vector_space
 
         n = scene.n
         msh = mesh.create_unit_interval(MPI.COMM_SELF, 1)
@@ -376,7 +376,7 @@ class CompiledForce:
         if force.ufl_domain() is None:  # depends on neither x nor a constant
             raise ValueError("the force is a number")
         with quiet_jit_logging():
-            self._expr = fem.Expression(force, np.zeros((1, 1)))
+            self._expr = CellPointEvaluator(force, np.zeros(1)).compiled
         self._pack = lambda: cpp.fem.pack_constants(self._expr._cpp_object)
         self.kernel = int(cffi.FFI().cast("uintptr_t",
                                           self._expr.ufcx_expression.tabulate_tensor_float64))
