@@ -376,28 +376,28 @@ class LocalAction:
             return
         ffi, lib = built
         products, scale, total = self._products
-        keep = [np.ascontiguousarray(a, dtype=dtype) for a, dtype in (
+        arrays = [np.ascontiguousarray(a, dtype=dtype) for a, dtype in (
             (self._hess_cols, np.int64), (scale, float),
             ([lo for lo, _, _, _, _ in products], np.int64),
             ([hi for _, hi, _, _, _ in products], np.int64),
             ([start for _, _, _, start, _ in products], np.int64),
             (np.stack([P.T for _, _, P, _, _ in products]), float),
             (self._j_flat, np.int64), (self._j_source, np.int64), (np.empty(total), float))]
-        cols, scale_, lo, hi, start, P, flat, source, B = keep
         pointers = [native.pointer(ffi, a, "int64_t *" if a.dtype == np.int64 else "double *")
-                    for a in keep]
-        self._native_band = (ffi, lib, keep, pointers, len(products), P.shape[2], len(flat))
+                    for a in arrays]  # (each keeps its array alive)
+        self._native_band = (ffi, lib, pointers, len(products), arrays[5].shape[2],
+                             len(self._j_flat))
 
     def _band(self, out: np.ndarray) -> np.ndarray:
         """The Jacobian's band (dgbtrf's storage) from an evaluation (cells, q, columns)."""
         if self._native_band is not None and out.flags.c_contiguous:
-            ffi, lib, _, (cols, scale, lo, hi, start, P, flat, source, B), groups, nd2, \
+            ffi, lib, (cols, scale, lo, hi, start, P, flat, source, B), groups, nd2, \
                 entries = self._native_band
             band = np.empty((self._band_rows, self.size))
             lib.fem_dual_band(out.shape[0], out.shape[1], out.shape[2],
-                              ffi.cast("double *", out.ctypes.data), len(self.pairs), cols,
-                              scale, groups, lo, hi, start, P, nd2, entries, flat, source, B,
-                              ffi.cast("double *", band.ctypes.data), band.size)
+                              ffi.from_buffer("double[]", out), len(self.pairs), cols, scale,
+                              groups, lo, hi, start, P, nd2, entries, flat, source, B,
+                              ffi.from_buffer("double[]", band), band.size)
             return band
         products, scale, total = self._products
         H = out.transpose(1, 0, 2)[:, :, self._hess_cols] * scale  # (q, cells, pairs)
