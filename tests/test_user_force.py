@@ -61,6 +61,15 @@ def test_user_force_parameters_are_validated():
         Swirl.from_params({"beta": "0"})
 
 
+def test_parameters_that_derivatives_remove_are_not_a_wrong_answer():
+    """The worst case of the constant slots (session 16 hostile test): on the old code this run
+    ended ok with an estimate of 1.0e-8 and was 0.048 off."""
+    r = run(RunConfig.create("force", {"F": "a + b*x + c*x**2 - x**3", "a": "0.1", "b": "0.2",
+                                       "c": "0.3"}, x0="0.5"))
+    assert r.status == "ok"
+    assert max(r.error["x_max"], r.error["v_max"]) <= r.error_estimate
+
+
 @pytest.mark.parametrize("a", [-2.0, 0.5])
 def test_a_parameter_that_derivatives_remove_keeps_the_other_constants_in_place(a):
     """F = a leaves G_x = alpha without a: 0.5.2's Expression packed a anyway, and every later
