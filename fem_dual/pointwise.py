@@ -62,7 +62,7 @@ class PointwiseDtP:
         self.dofs = space.dofmap.list.array.reshape(len(self.cells), len(points))
         self.Ginv = fem.Function(inverse_space) if inverse_space is not None else None
         self.iterations = 0
-        self._packed = None  # (the compiled loops, the packed expression), or False: numpy
+        self._packed = None  # (the compiled loops, the packed expression, ...), or False: numpy
         self._out = np.zeros((len(self.cells), len(points) * (n + n * n + 1)))
         self._shape = (len(self.cells), len(points), n + n * n + 1)
 
@@ -120,8 +120,13 @@ class PointwiseDtP:
             from fem_dual import native
 
             built = native.library()
-            self._packed = False if built is None else (built, native.PackedExpression(
-                self._eval.compiled, self.cells))
+            if built is None:
+                self._packed = False
+            else:
+                packed = native.PackedExpression(self._eval.compiled, self.cells)
+                self._packed = (built, packed,  # X's columns in a cell's row, X's blocks
+                                np.ascontiguousarray(packed.slot(self.X), dtype=np.int64),
+                                np.ascontiguousarray(self.dofs, dtype=np.int64))
         if self._packed:
             return self._compiled_iterate(max_it)
         n = self.n
@@ -142,26 +147,18 @@ class PointwiseDtP:
         """_iterate's loop in compiled code: the same steps, stopping rule and results."""
         from fem_dual.native import pointer
 
-        (ffi, lib), packed = self._packed
+        (ffi, lib), packed, xslot, xdofs = self._packed
         n, cells, points = self.n, len(self.cells), len(self.points)
         rows = packed.pack()
         step = np.empty((cells, points, n))
         it = ffi.new("int *")
         status = lib.fem_dual_dtp_newton(
             packed.kernel, cells, points, n, rows.shape[1], pointer(ffi, rows),
-            pointer(ffi, self._xslot(packed), "int64_t *"), pointer(ffi, packed.constants()),
+            pointer(ffi, xslot, "int64_t *"), pointer(ffi, packed.constants()),
             pointer(ffi, packed.coords), max_it, LAST_STEP, pointer(ffi, self._out),
-            pointer(ffi, step), pointer(ffi, self.X.x.array),
-            pointer(ffi, self._xdofs, "int64_t *"), pointer(ffi, self._work), it)
+            pointer(ffi, step), pointer(ffi, self.X.x.array), pointer(ffi, xdofs, "int64_t *"),
+            pointer(ffi, np.empty(n * n)), it)
         return status, self._out.reshape(self._shape), step, it[0]
-
-    def _xslot(self, packed) -> np.ndarray:
-        slots = getattr(self, "_slots", None)
-        if slots is None:
-            slots = self._slots = np.ascontiguousarray(packed.slot(self.X), dtype=np.int64)
-            self._xdofs = np.ascontiguousarray(self.dofs, dtype=np.int64)
-            self._work = np.empty(self.n * self.n)
-        return slots
 
     @staticmethod
     def _branch(Gx: np.ndarray, t: np.ndarray) -> Optional[str]:
