@@ -23,7 +23,7 @@ from fem_dual.solvers import CompiledSlab, SolverOptions, direct_solver
 from fem_dual.stepper import stalled
 
 __all__ = ["NEWTON_DEFAULTS", "NewtonSlabSolver", "NO_PROGRESS_ITS", "RESIDUAL_ROUNDOFF",
-           "difference_step"]
+           "difference_step", "residual_size"]
 
 _REASONS = {getattr(PETSc.SNES.ConvergedReason, name): name
             for name in dir(PETSc.SNES.ConvergedReason) if name.isupper()}
@@ -73,6 +73,22 @@ NO_PROGRESS_RATIO = 0.1
 # rk4 base, whose first residual is 1e-8, SNES took ten steps at 1e-16 and ended on noise).
 RESIDUAL_ROUNDOFF = 64 * np.finfo(float).eps
 _R = PETSc.SNES.ConvergedReason
+
+
+def residual_size(problem) -> float:
+    """The size of the terms a slab's residual sums, which its round-off scales with: the
+    initial terms x0 and M v0, and for a force the slab's impulse dt |F(x0)|. A start at rest
+    at x = 0 under F(0) != 0 has only the last (force --F "1 - x" --x0 0 --base rk4: the rk4
+    base left a first residual at round-off, which Newton could reduce neither by its relative
+    test nor to an absolute floor of size 0, and every halving failed)."""
+    p = problem
+    size = max(float(np.abs(p.x0.value).max()), float(np.abs(p.c["M"].value @ p.v0.value).max()))
+    if not p.scene.linear:
+        with np.errstate(all="ignore"):
+            impulse = float(p.dt.value) * float(np.abs(p.scene.force_numpy(p.x0.value)).max())
+        if math.isfinite(impulse):
+            size = max(size, impulse)
+    return size
 
 
 def backward_floor(jacobian_norm: float, state_norm: float) -> float:
@@ -249,8 +265,7 @@ class NewtonSlabSolver(CompiledSlab):
         self.snes.setConvergenceHistory(length=1000, reset=True)
         tolerances = self.snes.getTolerances()  # (rtol, atol, stol, max_it)
         p = self.problem
-        size = max(float(np.abs(p.x0.value).max()),
-                   float(np.abs(p.c["M"].value @ p.v0.value).max()))
+        size = residual_size(p)
         # the round-off of the residual ends Newton, as on the pointwise path, unless the user
         # set snes_atol
         floor = 0.0 if "snes_atol" in self.options.given else RESIDUAL_ROUNDOFF * size

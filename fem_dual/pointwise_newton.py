@@ -18,7 +18,8 @@ import numpy as np
 from fem_dual.errors import SolveError
 from fem_dual.local_action import BandedLU, LocalAction, _quiet
 from fem_dual.newton import (NEWTON_DEFAULTS, NO_PROGRESS_RATIO, RESIDUAL_ROUNDOFF,
-                             backward_floor, difference_step, round_off_floor)
+                             backward_floor, difference_step, residual_size,
+                             round_off_floor)
 from fem_dual.problem import SlabProblem
 from fem_dual.stepper import stalled
 
@@ -104,8 +105,7 @@ class PointwiseNewtonSolver(_PointwiseSolver):
         local, p = self.local, self.problem
         self._solved_residual = None
         x = local.state() if warm is not None else np.zeros(local.size)
-        size = max(float(np.abs(p.x0.value).max()),
-                   float(np.abs(p.c["M"].value @ p.v0.value).max()))
+        size = residual_size(p)
         atol = max(RESIDUAL_ROUNDOFF * size, 0.0 if warm is None else RTOL * warm)
         local.set_state(x)
         F, band = local.residual_and_jacobian()
