@@ -361,9 +361,8 @@ class CompiledForce:
             return None
 
     def __init__(self, scene):
-        import cffi
         import ufl
-        from dolfinx import cpp, fem, mesh
+        from dolfinx import fem, mesh
         from mpi4py import MPI
 
         from fem_dual.compat import CellPointEvaluator, constant, quiet_jit_logging, vector_space
@@ -376,17 +375,16 @@ class CompiledForce:
         if force.ufl_domain() is None:  # depends on neither x nor a constant
             raise ValueError("the force is a number")
         with quiet_jit_logging():
-            self._expr = CellPointEvaluator(force, np.zeros(1)).compiled
-        self._pack = lambda: cpp.fem.pack_constants(self._expr._cpp_object)
-        self.kernel = int(cffi.FFI().cast("uintptr_t",
-                                          self._expr.ufcx_expression.tabulate_tensor_float64))
+            expr = CellPointEvaluator(force, np.zeros(1)).compiled
+        self._packed = PackedExpression(expr, np.zeros(1, dtype=np.int32))
+        self.kernel = self._packed.kernel
         self.n = n
 
     def pack(self, scene) -> np.ndarray:
         """The kernel's constants for `scene`'s parameter values."""
         for key, value in scene.constants().items():
             self.c[key].value = value
-        return np.ascontiguousarray(self._pack(), dtype=np.float64)
+        return self._packed.constants()
 
 
 class PackedExpression:
@@ -421,7 +419,6 @@ class PackedExpression:
             self._slots[id(f)] = offset + np.arange(index.shape[1])
             offset += index.shape[1]
         self._columns = columns
-        self.width = offset
         self.packed = np.zeros((len(self.cells), max(offset, 1)))
         msh = expr.ufl_expression.ufl_domain().ufl_cargo()
         geometry = msh.geometry.dofmap.array.reshape(-1, 2)[self.cells]
