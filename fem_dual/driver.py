@@ -715,12 +715,16 @@ def _null_where_not_finite(value):
 
 def _compiled_loops(sim: "Simulation") -> List[str]:
     """Which inner loops of the run ran in compiled code (fem_dual.native): "rk4" (the rk4
-    base), "band" (the pointwise Jacobian's band), "dtp" (the implicit DtP map's Newton)."""
+    base), "band" (the pointwise Jacobian's band), "newton" (the slab's Newton iterations, an
+    explicit DtP map), "dtp" (the implicit DtP map's Newton)."""
     loops = []
     if getattr(getattr(sim.problem, "predictor", None), "compiled", False):
         loops.append("rk4")
-    if getattr(getattr(sim.solver, "local", None), "compiled_band", False):
+    local = getattr(sim.solver, "local", None)
+    if getattr(local, "compiled_band", False):
         loops.append("band")
+    if getattr(local, "compiled_newton", False) and sim.scene.linear is False:
+        loops.append("newton")
     if getattr(getattr(sim.problem, "pointwise", None), "compiled", False):
         loops.append("dtp")
     return loops

@@ -21,6 +21,7 @@ a few hundred, which one core factors in microseconds.
 from __future__ import annotations
 
 from contextlib import contextmanager
+from dataclasses import dataclass
 from typing import Iterator, Optional, Tuple
 
 import basix
@@ -36,6 +37,11 @@ __all__ = ["LocalAction", "BandedLU", "quiet_numpy"]
 
 
 _QUIET = [0]  # how many quiet blocks are running (one np.errstate is enough)
+# The factors of Newton's last Jacobian serve the tangents at its last iterate when that step
+# moved the state by at most this much (relative): the Jacobians differ by as little, and the
+# tangents feed estimates (a factorisation less per slab: 85 us of 3 ms on curl3d T = 8, p = 6,
+# 8 cells)
+FACTORS_KEPT_STEP = 1e-8
 
 
 @contextmanager
@@ -86,6 +92,14 @@ class BandedLU:
             self.cholesky = None
             self.lu, self.piv, info = lapack.dgbtrf(band, kd, kd, overwrite_ab=1)
         self.singular = info != 0
+
+    @classmethod
+    def of_cholesky(cls, cholesky: np.ndarray, kd: int) -> "BandedLU":
+        """The factors of dpbtrf computed elsewhere (fem_dual.native's Newton): its upper
+        storage, (kd + 1, N)."""
+        lu = cls.__new__(cls)
+        lu.kd, lu.cholesky, lu.piv, lu.singular = kd, cholesky, None, False
+        return lu
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         if self.cholesky is not None:
@@ -265,6 +279,9 @@ class LocalAction:
         self._j_source = source
         self._j_flat = (2 * kd + i - j) * N + j  # band[2 kd + i - j, j] = J[i, j]
         self._compiled_band()
+        self._native_newton: Optional[NativeNewton] = None
+        if self._native_band is not None and p.pointwise is None:
+            self._native_newton = NativeNewton(self)
 
         # the momenta at the cell ends (fem_dual.recovery): the cell residual at the vertex
         # basis functions (local dofs 0 and 1 sit at reference points 0 and 1), signed by the
@@ -286,6 +303,7 @@ class LocalAction:
         self._initial_at: Optional[Tuple[int, np.ndarray]] = None
         self._both_at: Optional[tuple] = None  # (version, state, R) of the last evaluation
         self._tangent_at: Optional[tuple] = None  # (state, LU, tangent matrix)
+        self._factors_at: Optional[tuple] = None  # (version, state, factors of J there)
         self._mass_at: Optional[tuple] = None  # (M, M^-1, d initial rows / d z0)
 
     def _pattern(self, upper: list) -> list:
@@ -362,6 +380,28 @@ class LocalAction:
         return R, self._band(out)
 
     @property
+    def compiled_newton(self) -> bool:
+        """Whether Newton's iterations run in compiled code (fem_dual.native: an explicit DtP
+        map, the compiled band, LAPACK reachable from C)."""
+        return self._native_newton is not None
+
+    def native_newton(self, x: np.ndarray, **tests) -> Optional["NativeNewtonResult"]:
+        """Newton from the free unknowns x in compiled code (NativeNewton.run); None where
+        the numpy iteration must decide, or where it is not compiled. The state is left at
+        the last iterate, its evaluation held."""
+        if self._native_newton is None:
+            return None
+        result = self._native_newton.run(x, **tests)
+        if result is None:
+            self._both_at = None
+            return None
+        self.problem.w.x.array[self.free_global] = result.x
+        self._both_at = (self.problem.version, self.problem.w.x.array.copy(), result.F)
+        if result.lu is not None and result.last_step <= FACTORS_KEPT_STEP:
+            self._factors_at = self._both_at[:2] + (result.lu,)
+        return result
+
+    @property
     def compiled_band(self) -> bool:
         """Whether the Jacobian's band is assembled in compiled code (fem_dual.native)."""
         return self._native_band is not None
@@ -436,6 +476,14 @@ class LocalAction:
             return None
         return self._out_both.reshape(len(self.cells), self.nq, -1), self._both_at[2]
 
+    def _held_factors(self) -> Optional[BandedLU]:
+        """Factors of the Jacobian at the current state to round-off, where Newton's last step
+        ended there (fem_dual.native's Newton, its step within FACTORS_KEPT_STEP)."""
+        p, at = self.problem, self._factors_at
+        if at is None or at[0] != p.version or not np.array_equal(at[1], p.w.x.array):
+            return None
+        return at[2]
+
     def _hessian(self, out: np.ndarray) -> np.ndarray:
         """The full symmetric Hessian of the density at the points: (cells, q, 2 bs, 2 bs)."""
         m = 2 * self.bs
@@ -501,9 +549,11 @@ class LocalAction:
         if held is None:
             R, band = self.residual_and_jacobian()
             out = self._out_both.reshape(cells, nq, -1)
+            lu = self.factor(band)
         else:
-            (out, R), band = held, self._band(held[0])
-        lu, hessian = self.factor(band), self._hessian(out)
+            out, R = held
+            lu = self._held_factors() or self.factor(self._band(out))
+        hessian = self._hessian(out)
         rhs = np.zeros((self.size, K + 1))  # d R / d z0, then R (the Newton step's)
         rhs[:, K] = R
         dg_base = None
@@ -557,3 +607,118 @@ class LocalAction:
             idx = np.arange(max(0, offset), min(N, N + offset))
             J[idx - offset, idx] = band[2 * kd - offset, idx]
         return J
+
+
+@dataclass
+class NativeNewtonResult:
+    """How a compiled Newton (NativeNewton.run) ended: SNES's reason name, the last iterate
+    and its residual, the residual history, the last step's factors (None without a step),
+    the backward floor (fem_dual.newton.backward_floor) at the last factored iterate and the
+    last step's size relative to the iterate."""
+
+    reason: str
+    x: np.ndarray
+    F: np.ndarray
+    history: list
+    lu: Optional[BandedLU]
+    backward: float
+    last_step: float  # |the last step| / |x| (inf without a step)
+
+
+_REASONS = {1: "CONVERGED_FNORM_ABS", 2: "CONVERGED_FNORM_RELATIVE",
+            3: "CONVERGED_SNORM_RELATIVE", -1: "DIVERGED_MAX_IT"}
+
+
+def _lapack_address(name: str) -> int:
+    """The address of scipy's LAPACK routine `name` (scipy.linalg.cython_lapack's capsule)."""
+    import ctypes
+
+    from scipy.linalg import cython_lapack
+
+    capsule = cython_lapack.__pyx_capi__[name]
+    api = ctypes.pythonapi
+    api.PyCapsule_GetName.restype = ctypes.c_char_p
+    api.PyCapsule_GetName.argtypes = [ctypes.py_object]
+    api.PyCapsule_GetPointer.restype = ctypes.c_void_p
+    api.PyCapsule_GetPointer.argtypes = [ctypes.py_object, ctypes.c_char_p]
+    return int(api.PyCapsule_GetPointer(capsule, api.PyCapsule_GetName(capsule)))
+
+
+class NativeNewton:
+    """The Newton iteration of fem_dual.pointwise_newton.PointwiseNewtonSolver in compiled code
+    (fem_dual.native's fem_dual_slab_newton) for a slab with an explicit DtP map: the same
+    evaluations, band, banded Cholesky (scipy's LAPACK) and tests, while every full step is
+    taken; where the line search would shorten a step, or a factorisation or value fails,
+    `run` returns None and the numpy iteration starts over (the failure paths stay in one
+    place). One call per solve instead of some 30 Python calls per Newton step.
+
+    Args:
+        local: the slab's pointwise assembly (with its compiled band).
+    """
+
+    def __init__(self, local: LocalAction):
+        from fem_dual import native
+
+        self.local = local
+        self.ffi, self.lib = native.library()
+        p = local.problem
+        self.expr = native.PackedExpression(local._both.compiled, local.cells)
+        index = self.expr.index(p.w)  # (cells, nd bs): the dual state's values in each row
+        free = np.full(p.w.x.array.size, -1, dtype=np.int64)
+        free[local.free_global] = np.arange(local.size)
+        self.wfree = np.ascontiguousarray(free[index])
+        self.wslot = np.ascontiguousarray(np.broadcast_to(self.expr.slot(p.w), index.shape),
+                                          dtype=np.int64)
+        self.pbtrf, self.pbtrs = _lapack_address("dpbtrf"), _lapack_address("dpbtrs")
+        N, kd = local.size, local.kd
+        self.band = np.empty((local._band_rows, N))
+        self.r = np.empty(len(local.cells) * local.nd * local.bs)
+        self.work = np.empty((4, N))
+        self.history = np.empty(64)
+        self.r_keep = np.ascontiguousarray(local._r_keep, dtype=np.int64)
+        self.r_rows = np.ascontiguousarray(local._r_rows, dtype=np.int64)
+        self.start_rows = np.ascontiguousarray(local.start_rows, dtype=np.int64)
+        self.Tg = np.ascontiguousarray(local._Tg)
+        self.ints = self.ffi.new("int[2]")
+        self.doubles = self.ffi.new("double[2]")  # the backward floor, the last step
+
+    def run(self, x0: np.ndarray, atol: float, check_start: bool, rtol: float, stol: float,
+            max_it: int, patience: Optional[int], no_progress: float,
+            decrease: float) -> Optional[NativeNewtonResult]:
+        """Newton from x0 with the tests of PointwiseNewtonSolver.solve; None where the numpy
+        iteration must decide (see fem_dual.native)."""
+        from fem_dual.native import pointer
+
+        local, ffi, lib = self.local, self.ffi, self.lib
+        N, kd, cells = local.size, local.kd, len(local.cells)
+        packed = self.expr.pack()
+        constants = self.expr.constants()
+        initial = np.ascontiguousarray(local._initial_rows())
+        (_, _, (cols, scale, lo, hi, start, PT, flat, source, B), groups, nd2,
+         entries) = local._native_band
+        x = np.array(x0, dtype=float)
+        chol = np.empty((kd + 1, N), order="F")
+        F, step, trial, Fnew = self.work
+        if len(self.history) < max_it + 1:
+            self.history = np.empty(max_it + 1)
+        d = lambda a: pointer(ffi, a)  # noqa: E731
+        status = lib.fem_dual_slab_newton(
+            self.expr.kernel, cells, local.nq, local._out_both.size // (cells * local.nq),
+            packed.shape[1], d(packed), d(constants), d(self.expr.coords), self.wfree.shape[1],
+            pointer(ffi, self.wslot, "int64_t *"), pointer(ffi, self.wfree, "int64_t *"),
+            local.nd, local.bs, d(self.Tg), len(self.r_keep),
+            pointer(ffi, self.r_keep, "int64_t *"), pointer(ffi, self.r_rows, "int64_t *"),
+            len(self.start_rows), pointer(ffi, self.start_rows, "int64_t *"), d(initial),
+            len(local.pairs), cols, scale, groups, lo, hi, start, PT, nd2, entries, flat,
+            source, B, N, kd, d(self.band), ffi.from_buffer("double[]", chol.T),
+            self.pbtrf, self.pbtrs, d(x), d(F), d(step), d(trial), d(Fnew), d(self.r),
+            d(local._out_both), atol, int(check_start), rtol, stol, max_it,
+            -1 if patience is None else patience, no_progress, decrease, d(self.history),
+            self.ints, self.doubles, self.doubles + 1, self.ints + 1)
+        if status != 0:
+            return None
+        it, reason = self.ints[0], self.ints[1]
+        return NativeNewtonResult(_REASONS[reason], x, F.copy(),
+                                  self.history[:it + 1].tolist(),
+                                  BandedLU.of_cholesky(chol, kd) if it > 0 else None,
+                                  float(self.doubles[0]), float(self.doubles[1]))

@@ -187,6 +187,168 @@ int fem_dual_dtp_newton(uintptr_t kernel, int cells, int points, int n, int wsiz
     return 2;
 }
 
+/* One slab's Newton on the pointwise assembly of fem_dual.local_action.LocalAction (an
+   explicit DtP map): the iteration of fem_dual.pointwise_newton.PointwiseNewtonSolver.solve
+   while every full step lowers the residual enough. Each evaluation puts the free unknowns x
+   into the dual state's columns of the packed rows (wslot, wfree: -1 keeps the packed value,
+   a Dirichlet one), calls the kernel of the density's gradient and Hessian on every cell into
+   `out`, assembles R (the residual of LocalAction._residual: r_e = Tg_e g_e, scattered to rows
+   r_rows, plus the initial rows) and the band (fem_dual_band). The Newton step is LAPACK's
+   banded Cholesky (dpbtrf, dpbtrs: scipy's, passed by address) of the band's upper rows into
+   `chol` (Fortran order, (kd + 1) x N).
+   Returns 0 when Newton ended (*reason: 1 CONVERGED_FNORM_ABS, 2 CONVERGED_FNORM_RELATIVE,
+   3 CONVERGED_SNORM_RELATIVE, -1 DIVERGED_MAX_IT; x the last iterate, F its residual, out
+   its evaluation, chol the last step's factors, *last_step that step relative to x,
+   history[0 .. *iterations], *backward the backward floor at the last factored iterate), 1
+   where the numpy iteration must decide (a
+   residual that is not finite, a Jacobian that is not positive definite, a step that is not
+   finite or that the line search would shorten): x is then undefined. */
+typedef void (*pbtrf_t)(char *, int *, int *, double *, int *, int *);
+typedef void (*pbtrs_t)(char *, int *, int *, int *, double *, int *, double *, int *, int *);
+
+struct slab {
+    kernel_t kernel;
+    int cells, nq, ncols, wsize, nw, nd, bs, N, kd;
+    double *packed, *out, *r, *band, *B;
+    const double *c, *coords, *Tg, *initial, *scale, *PT;
+    const int64_t *wslot, *wfree, *r_keep, *r_rows, *start_rows;
+    int64_t nkeep, entries;
+    int nstart, npairs, ngroups, nd2;
+    const int64_t *cols, *lo, *hi, *start, *flat, *source;
+};
+
+static double dot(int n, const double *a, const double *b)
+{
+    double s = 0.0;
+    int i;
+    for (i = 0; i < n; ++i) s += a[i] * b[i];
+    return s;
+}
+
+/* R (into F) and the band at x; returns |R| (2-norm) */
+static double slab_evaluate(const struct slab *S, const double *x, double *F)
+{
+    const int local = 0;
+    const uint8_t perm = 0;
+    const int nq2 = 2 * S->nq;
+    int e, a, c, j;
+    int64_t k;
+    for (e = 0; e < S->cells; ++e) {
+        double *row = S->packed + (int64_t)e * S->wsize;
+        for (j = 0; j < S->nw; ++j) {
+            int64_t f = S->wfree[(int64_t)e * S->nw + j];
+            if (f >= 0) row[S->wslot[(int64_t)e * S->nw + j]] = x[f];
+        }
+    }
+    memset(S->out, 0, (int64_t)S->cells * S->nq * S->ncols * sizeof(double));
+    for (e = 0; e < S->cells; ++e)
+        S->kernel(S->out + (int64_t)e * S->nq * S->ncols, S->packed + (int64_t)e * S->wsize,
+                  S->c, S->coords + (int64_t)e * 6, &local, &perm);
+    for (e = 0; e < S->cells; ++e) {
+        const double *o = S->out + (int64_t)e * S->nq * S->ncols;
+        for (a = 0; a < S->nd; ++a) {
+            const double *t = S->Tg + ((int64_t)e * S->nd + a) * nq2;
+            double *ra = S->r + ((int64_t)e * S->nd + a) * S->bs;
+            for (c = 0; c < S->bs; ++c) {
+                double s = 0.0;
+                for (j = 0; j < nq2; ++j) s += t[j] * o[(j / 2) * S->ncols + (j % 2) * S->bs + c];
+                ra[c] = s;
+            }
+        }
+    }
+    memset(F, 0, S->N * sizeof(double));
+    for (k = 0; k < S->nkeep; ++k) F[S->r_rows[k]] += S->r[S->r_keep[k]];
+    for (j = 0; j < S->nstart; ++j) F[S->start_rows[j]] += S->initial[j];
+    fem_dual_band(S->cells, S->nq, S->ncols, S->out, S->npairs, S->cols, S->scale, S->ngroups,
+                  S->lo, S->hi, S->start, S->PT, S->nd2, S->entries, S->flat, S->source, S->B,
+                  S->band, (int64_t)(3 * S->kd + 1) * S->N);
+    return sqrt(dot(S->N, F, F));
+}
+
+int fem_dual_slab_newton(uintptr_t kernel, int cells, int nq, int ncols, int wsize,
+                         double *packed, const double *c, const double *coords, int nw,
+                         const int64_t *wslot, const int64_t *wfree, int nd, int bs,
+                         const double *Tg, int64_t nkeep, const int64_t *r_keep,
+                         const int64_t *r_rows, int nstart, const int64_t *start_rows,
+                         const double *initial, int npairs, const int64_t *cols,
+                         const double *scale, int ngroups, const int64_t *lo,
+                         const int64_t *hi, const int64_t *start, const double *PT, int nd2,
+                         int64_t entries, const int64_t *flat, const int64_t *source,
+                         double *B, int N, int kd, double *band, double *chol,
+                         uintptr_t pbtrf, uintptr_t pbtrs, double *x, double *F,
+                         double *step, double *trial, double *Fnew, double *r, double *out,
+                         double atol, int check_start, double rtol, double stol, int max_it,
+                         int patience, double no_progress, double decrease,
+                         double *history, int *iterations, double *backward, double *last_step,
+                         int *reason)
+{
+    struct slab S;
+    pbtrf_t factor = (pbtrf_t)pbtrf;
+    pbtrs_t solve = (pbtrs_t)pbtrs;
+    double fnorm, first, gnorm;
+    int it = 0, i, j, info, one = 1, ldab = kd + 1;
+    char upper = 'U';
+    S.kernel = (kernel_t)kernel; S.cells = cells; S.nq = nq; S.ncols = ncols;
+    S.wsize = wsize; S.nw = nw; S.nd = nd; S.bs = bs; S.N = N; S.kd = kd;
+    S.packed = packed; S.out = out; S.r = r; S.band = band; S.B = B; S.c = c;
+    S.coords = coords; S.Tg = Tg; S.initial = initial; S.scale = scale; S.PT = PT;
+    S.wslot = wslot; S.wfree = wfree; S.r_keep = r_keep; S.r_rows = r_rows;
+    S.start_rows = start_rows; S.nkeep = nkeep; S.entries = entries; S.nstart = nstart;
+    S.npairs = npairs; S.ngroups = ngroups; S.nd2 = nd2; S.cols = cols; S.lo = lo; S.hi = hi;
+    S.start = start; S.flat = flat; S.source = source;
+
+    *backward = 0.0;
+    *last_step = INFINITY;
+    fnorm = slab_evaluate(&S, x, F);
+    history[0] = first = fnorm;
+    *iterations = 0;
+    if (!isfinite(fnorm)) return 1;
+    if (check_start && fnorm < atol) {
+        *reason = 1;
+        return 0;
+    }
+    for (;;) {
+        double largest = 0.0, xmax = 0.0, ynorm, xnorm, bw;
+        for (j = 0; j < N; ++j) {  /* the 1-norm of the band's columns; max |x| */
+            double s = 0.0;
+            for (i = 0; i < 3 * kd + 1; ++i) s += fabs(band[(int64_t)i * N + j]);
+            if (s > largest) largest = s;
+            if (fabs(x[j]) > xmax) xmax = fabs(x[j]);
+        }
+        bw = 8.0 * 2.220446049250313e-16 * largest * xmax;
+        *backward = isfinite(bw) ? bw : 0.0;
+        for (j = 0; j < N; ++j)
+            for (i = 0; i <= kd; ++i) chol[(int64_t)j * ldab + i] = band[(int64_t)(kd + i) * N + j];
+        factor(&upper, &N, &kd, chol, &ldab, &info);
+        if (info != 0) return 1;
+        memcpy(step, F, N * sizeof(double));
+        solve(&upper, &N, &kd, &one, chol, &ldab, step, &N, &info);
+        if (info != 0) return 1;
+        for (j = 0; j < N; ++j) {
+            if (!isfinite(step[j])) return 1;
+            trial[j] = x[j] - step[j];
+        }
+        gnorm = slab_evaluate(&S, trial, Fnew);
+        if (!(isfinite(gnorm) && gnorm <= (1.0 - decrease) * fnorm)) return 1;
+        ++it;
+        ynorm = sqrt(dot(N, step, step));
+        memcpy(x, trial, N * sizeof(double));
+        memcpy(F, Fnew, N * sizeof(double));
+        fnorm = gnorm;
+        history[it] = fnorm;
+        *iterations = it;
+        xnorm = sqrt(dot(N, x, x));
+        *last_step = ynorm / xnorm;
+        if (fnorm < atol) *reason = 1;
+        else if (fnorm <= rtol * first) *reason = 2;
+        else if (ynorm < stol * xnorm) *reason = 3;
+        else if ((patience >= 0 && it >= (max_it < patience ? max_it : patience)
+                  && fnorm > no_progress * first) || it >= max_it) *reason = -1;
+        else continue;
+        return 0;
+    }
+}
+
 /* Classical RK4 of x' = v, v' = a(x) in Nystrom form over `steps` steps of length h from z0 =
    (x, v): states and rates (steps + 1, 2n), rates = (v, a(x)). work: 7 n doubles. Returns 0, or
    1 where a value is not finite (the loop stops there). */
@@ -234,6 +396,22 @@ int fem_dual_rk4(uintptr_t kernel, const double *c, int n, int steps, double h, 
 """
 
 _CDEF = """
+int fem_dual_slab_newton(uintptr_t kernel, int cells, int nq, int ncols, int wsize,
+                         double *packed, const double *c, const double *coords, int nw,
+                         const int64_t *wslot, const int64_t *wfree, int nd, int bs,
+                         const double *Tg, int64_t nkeep, const int64_t *r_keep,
+                         const int64_t *r_rows, int nstart, const int64_t *start_rows,
+                         const double *initial, int npairs, const int64_t *cols,
+                         const double *scale, int ngroups, const int64_t *lo,
+                         const int64_t *hi, const int64_t *start, const double *PT, int nd2,
+                         int64_t entries, const int64_t *flat, const int64_t *source,
+                         double *B, int N, int kd, double *band, double *chol,
+                         uintptr_t pbtrf, uintptr_t pbtrs, double *x, double *F,
+                         double *step, double *trial, double *Fnew, double *r, double *out,
+                         double atol, int check_start, double rtol, double stol, int max_it,
+                         int patience, double no_progress, double decrease,
+                         double *history, int *iterations, double *backward, double *last_step,
+                         int *reason);
 int fem_dual_dtp_newton(uintptr_t kernel, int cells, int points, int n, int wsize,
                         double *packed, const int64_t *xslot, const double *c,
                         const double *coords, int max_it, double last_step, double *out,
@@ -249,7 +427,8 @@ int fem_dual_rk4(uintptr_t kernel, const double *c, int n, int steps, double h, 
                  double *work);
 """
 
-_SYMBOLS = ("fem_dual_rk4", "fem_dual_band", "fem_dual_dtp_newton")
+_SYMBOLS = ("fem_dual_rk4", "fem_dual_band", "fem_dual_dtp_newton",
+            "fem_dual_slab_newton")
 _FLAGS = ("-O3", "-fPIC", "-shared")  # no -march=native: the same code on every machine
 _loaded: Dict[str, object] = {}
 
@@ -433,6 +612,10 @@ class PackedExpression:
             self.packed[:, start:start + index.shape[1]] = f.x.array[index]
             start += index.shape[1]
         return self.packed
+
+    def index(self, f) -> np.ndarray:
+        """(cells, columns): where in `f.x.array` each of its columns of a row is packed from."""
+        return next(index for g, index in self._columns if g is f)
 
     def slot(self, f) -> np.ndarray:
         """The columns of a row that hold the coefficient `f`'s cell values."""

@@ -103,10 +103,18 @@ class PointwiseNewtonSolver(_PointwiseSolver):
         slab), with at least one step; the value is the residual norm of the zero dual state
         (the partner's first), which the absolute test refers to, as it would from zero."""
         local, p = self.local, self.problem
-        self._solved_residual = None
+        self._solved_residual, self._lu = None, None
         x = local.state() if warm is not None else np.zeros(local.size)
         size = residual_size(p)
         atol = max(RESIDUAL_ROUNDOFF * size, 0.0 if warm is None else RTOL * warm)
+        fast = local.native_newton(x, atol=atol, check_start=warm is None, rtol=RTOL,
+                                   stol=STOL, max_it=MAX_IT, patience=self.patience,
+                                   no_progress=NO_PROGRESS_RATIO, decrease=DECREASE)
+        if fast is not None:  # every step taken whole (else the numpy iteration decides)
+            self._lu = fast.lu
+            self._finish(fast.x, fast.reason, fast.history, len(fast.history) - 1, size,
+                         fast.backward, warm, None)
+            return
         local.set_state(x)
         F, band = local.residual_and_jacobian()
         fnorm = _norm(F)
@@ -182,6 +190,13 @@ class PointwiseNewtonSolver(_PointwiseSolver):
                 reason = "CONVERGED_SNORM_RELATIVE"
             elif self._give_up(it, fnorm, first) or it >= MAX_IT:
                 reason = "DIVERGED_MAX_IT"
+        self._finish(x, reason, history, it, size, backward, warm, failure)
+
+    def _finish(self, x: np.ndarray, reason: str, history: List[float], it: int, size: float,
+                backward: float, warm: Optional[float], failure: Optional[str]) -> None:
+        """Record how Newton ended at x; raises SolveError where it failed short of the
+        round-off floor."""
+        local = self.local
         self.x = x
         floor = round_off_floor(history, size, backward, warm)
         if reason.startswith("DIVERGED"):

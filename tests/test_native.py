@@ -190,3 +190,96 @@ def test_the_reference_of_a_scene_with_a_mass_matrix_takes_it():
         z[:3]))]), (0.0, 2.0), z0, method="DOP853", rtol=1e-13, atol=1e-13)
     assert np.abs(r.x[-1] - sol.y[:3, -1]).max() <= r.error_estimate
     assert r.status == "ok" and max(r.error["x_max"], r.error["v_max"]) <= r.error_estimate
+
+
+def _slab_newton(scene, params, base, dt, x0, v0, compiled=True, bail=False, warm=None):
+    """One slab solved by PointwiseNewtonSolver from the zero dual state (or from `warm`, a
+    dual state's free unknowns, with its residual norm as the start's): (x, history, floor,
+    error message, whether the compiled Newton answered)."""
+    from mpi4py import MPI
+
+    from fem_dual.driver import Simulation
+    from fem_dual.errors import SolveError
+
+    config = RunConfig.create(scene, params, T=dt, cells=2, degree=3, base=base,
+                              staging="off", reference="none", x0=x0, v0=v0)
+    sim = Simulation.for_config(config, MPI.COMM_SELF)
+    try:
+        sim.begin(config)
+        solver, local = sim.solver, sim.solver.local
+        assert local.compiled_newton
+        answered = []
+        run_compiled = local._native_newton.run
+
+        def watched(x, **tests):
+            if bail:  # no step lowers the residual enough: the numpy iteration decides
+                tests["decrease"] = 2.0
+            result = run_compiled(x, **tests)
+            answered.append(result is not None)
+            return result
+        local._native_newton.run = watched
+        if not compiled:
+            local._native_newton = None
+        sim.problem.set_slab(config.x0, config.v0, dt, 0.0)
+        start = None
+        if warm is not None:
+            local.set_state(warm[0])
+            start = warm[1]
+        try:
+            solver.solve(warm=start)
+        except SolveError as exc:
+            return None, None, None, str(exc), answered
+        return (solver.x.copy(), solver.histories[-1], solver._floor, None, answered)
+    finally:
+        sim.close()
+
+
+@pytest.mark.parametrize("scene, params, base, dt, x0, v0", [
+    ("curl3d", None, "start", 0.5, "1,0.5,0.2", "0,0.3,0"),
+    ("curl3d", None, "rk4", 2.0, "1,0.5,0.2", "0,0.3,0"),
+    ("curl3d", None, "zero", 0.5, "1,0.5,0.2", "0,0.3,0"),
+    ("curl3d", {"m": "2", "K": "2,0,0,0,3,0,0,0,4"}, "rk4", 3.0, "0.3,0.2,0.1", "0.1,0,0"),
+    ("curl2d-lifted", None, "start", 0.5, "1,1", "0,0"),
+    ("curl3d", None, "rk4", 1.0, "0,0,0", "0,0,0"),  # at rest at an equilibrium: no step
+])
+def test_compiled_slab_newton_is_the_numpy_iteration(scene, params, base, dt, x0, v0):
+    """The compiled Newton of a slab with an explicit DtP map takes the numpy iteration's
+    steps: the same residual history, iterate and round-off floor, without the numpy loop."""
+    x, history, floor, message, answered = _slab_newton(scene, params, base, dt, x0, v0)
+    x_np, history_np, floor_np, message_np, answered_np = _slab_newton(
+        scene, params, base, dt, x0, v0, compiled=False)
+    assert message is None and message_np is None
+    assert answered == [True] and answered_np == []
+    assert len(history) == len(history_np) and (len(history) > 2 or x0 == "0,0,0")
+    assert np.allclose(history, history_np, rtol=1e-9, atol=1e-15 * history_np[0])
+    assert np.abs(x - x_np).max() <= 1e-12 * max(np.abs(x_np).max(), 1e-300)
+    assert floor == pytest.approx(floor_np, rel=1e-9)
+
+
+def test_a_compiled_newton_that_gives_up_leaves_the_start_to_the_numpy_iteration():
+    """Where a full step does not lower the residual enough, the numpy iteration starts over
+    from the same start state, warm or zero, and ends where it ends without the compiled
+    one; a slab whose full steps fail (curl3d, start base, dt = 2) is solved by the numpy
+    line search alone."""
+    args = ("curl3d", None, "start", 0.5, "1,0.5,0.2", "0,0.3,0")
+    x_np, history_np, _, _, _ = _slab_newton(*args, compiled=False)
+    x, history, _, message, answered = _slab_newton(*args, bail=True)
+    assert message is None and answered == [False]
+    assert np.array_equal(x, x_np) and history == history_np
+    warm = (0.9 * x_np, history_np[0])
+    x_w, history_w, _, _, _ = _slab_newton(*args, compiled=False, warm=warm)
+    x_b, history_b, _, message, answered = _slab_newton(*args, bail=True, warm=warm)
+    assert message is None and answered == [False]
+    assert np.array_equal(x_b, x_w) and history_b == history_w
+    hard = ("curl3d", None, "start", 2.0, "1,0.5,0.2", "0,0.3,0")
+    x, history, _, message, answered = _slab_newton(*hard)
+    x_np, history_np, _, _, _ = _slab_newton(*hard, compiled=False)
+    assert message is None and answered == [False]
+    assert np.array_equal(x, x_np) and history == history_np and len(history) > 10
+
+
+def test_a_run_says_its_newton_was_compiled():
+    r = run(RunConfig.create("curl3d", T=1, cells=2, degree=3, base="rk4", staging="off"))
+    assert r.status == "ok" and "newton" in r.solver["compiled_loops"]
+    r = run(RunConfig.create("curl2d", T=1, cells=2, degree=3, base="rk4", staging="off"))
+    assert "newton" not in r.solver["compiled_loops"]  # (an implicit DtP map: numpy's)
