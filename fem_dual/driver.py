@@ -723,9 +723,11 @@ def _compiled_loops(sim: "Simulation") -> List[str]:
     local = getattr(sim.solver, "local", None)
     if getattr(local, "compiled_band", False):
         loops.append("band")
-    if getattr(local, "compiled_newton", False) and sim.scene.linear is False:
+    newton = getattr(local, "compiled_newton", False) and sim.scene.linear is False
+    if newton:
         loops.append("newton")
-    if getattr(getattr(sim.problem, "pointwise", None), "compiled", False):
+    pointwise = getattr(sim.problem, "pointwise", None)
+    if pointwise is not None and (newton or pointwise.compiled):  # (within the C Newton)
         loops.append("dtp")
     return loops
 

@@ -280,7 +280,8 @@ class LocalAction:
         self._j_flat = (2 * kd + i - j) * N + j  # band[2 kd + i - j, j] = J[i, j]
         self._compiled_band()
         self._native_newton: Optional[NativeNewton] = None
-        if self._native_band is not None and p.pointwise is None:
+        if self._native_band is not None and (p.pointwise is None
+                                              or p.pointwise.Ginv is not None):
             self._native_newton = NativeNewton(self)
 
         # the momenta at the cell ends (fem_dual.recovery): the cell residual at the vertex
@@ -381,8 +382,8 @@ class LocalAction:
 
     @property
     def compiled_newton(self) -> bool:
-        """Whether Newton's iterations run in compiled code (fem_dual.native: an explicit DtP
-        map, the compiled band, LAPACK reachable from C)."""
+        """Whether Newton's iterations run in compiled code (fem_dual.native), with the
+        implicit DtP map's pointwise Newton inside each evaluation."""
         return self._native_newton is not None
 
     def native_newton(self, x: np.ndarray, **tests) -> Optional["NativeNewtonResult"]:
@@ -395,8 +396,11 @@ class LocalAction:
         if result is None:
             self._both_at = None
             return None
-        self.problem.w.x.array[self.free_global] = result.x
-        self._both_at = (self.problem.version, self.problem.w.x.array.copy(), result.F)
+        p = self.problem
+        p.w.x.array[self.free_global] = result.x
+        self._both_at = (p.version, p.w.x.array.copy(), result.F)
+        if p.pointwise is not None:  # X and G_x^-1 solved there by the C loop
+            self._held, self.error = self._both_at[:2], None
         if result.lu is not None and result.last_step <= FACTORS_KEPT_STEP:
             self._factors_at = self._both_at[:2] + (result.lu,)
         return result
@@ -681,40 +685,63 @@ class NativeNewton:
         self.Tg = np.ascontiguousarray(local._Tg)
         self.ints = self.ffi.new("int[2]")
         self.doubles = self.ffi.new("double[2]")  # the backward floor, the last step
+        self.F, self.step, self.trial, self.Fnew = self.work
+        cells = len(local.cells)
+        (_, _, band_pointers, groups, nd2, entries) = local._native_band
+        cols, scale, lo, hi, start, PT, flat, source, B = band_pointers
+        packed = self.expr.pack()  # (its rows stay where they are: packed again per solve)
+        ffi = self.ffi
+
+        def d(a, kind="double *"):
+            return native.pointer(ffi, a, kind)
+        # the call's arguments, None where each solve gives its own (the pointers keep their
+        # arrays alive)
+        self._args = [
+            self.expr.kernel, cells, local.nq, local._out_both.size // (cells * local.nq),
+            packed.shape[1], d(packed), None, d(self.expr.coords), self.wfree.shape[1],
+            d(self.wslot, "int64_t *"), d(self.wfree, "int64_t *"), local.nd, local.bs,
+            d(self.Tg), len(self.r_keep), d(self.r_keep, "int64_t *"),
+            d(self.r_rows, "int64_t *"), len(self.start_rows),
+            d(self.start_rows, "int64_t *"), None, len(local.pairs), cols, scale, groups, lo,
+            hi, start, PT, nd2, entries, flat, source, B, N, kd, d(self.band), None,
+            self.pbtrf, self.pbtrs, None, d(self.F), d(self.step), d(self.trial),
+            d(self.Fnew), d(self.r), d(local._out_both), None, None, None, None, None, None,
+            None, None, d(self.history), self.ints, self.doubles, self.doubles + 1,
+            self.ints + 1]
+        self._slots = {name: self._args.index(None, after) for name, after in (
+            ("constants", 0), ("initial", 7), ("chol", 36), ("x", 38))}
+        self._slots["tests"] = self._slots["x"] + 7
+        self.dtp = _ImplicitMap(self, free) if p.pointwise is not None else None
+        self._args.append(self.ffi.NULL if self.dtp is None else self.dtp.struct)
 
     def run(self, x0: np.ndarray, atol: float, check_start: bool, rtol: float, stol: float,
             max_it: int, patience: Optional[int], no_progress: float,
             decrease: float) -> Optional[NativeNewtonResult]:
         """Newton from x0 with the tests of PointwiseNewtonSolver.solve; None where the numpy
         iteration must decide (see fem_dual.native)."""
-        from fem_dual.native import pointer
-
-        local, ffi, lib = self.local, self.ffi, self.lib
-        N, kd, cells = local.size, local.kd, len(local.cells)
-        packed = self.expr.pack()
+        ffi, local = self.ffi, self.local
+        N, kd = local.size, local.kd
+        if max_it + 1 > len(self.history):
+            raise ValueError(f"at most {len(self.history) - 1} Newton iterations")
+        self.expr.pack()
         constants = self.expr.constants()
         initial = np.ascontiguousarray(local._initial_rows())
-        (_, _, (cols, scale, lo, hi, start, PT, flat, source, B), groups, nd2,
-         entries) = local._native_band
         x = np.array(x0, dtype=float)
         chol = np.empty((kd + 1, N), order="F")
-        F, step, trial, Fnew = self.work
-        if len(self.history) < max_it + 1:
-            self.history = np.empty(max_it + 1)
-        d = lambda a: pointer(ffi, a)  # noqa: E731
-        status = lib.fem_dual_slab_newton(
-            self.expr.kernel, cells, local.nq, local._out_both.size // (cells * local.nq),
-            packed.shape[1], d(packed), d(constants), d(self.expr.coords), self.wfree.shape[1],
-            pointer(ffi, self.wslot, "int64_t *"), pointer(ffi, self.wfree, "int64_t *"),
-            local.nd, local.bs, d(self.Tg), len(self.r_keep),
-            pointer(ffi, self.r_keep, "int64_t *"), pointer(ffi, self.r_rows, "int64_t *"),
-            len(self.start_rows), pointer(ffi, self.start_rows, "int64_t *"), d(initial),
-            len(local.pairs), cols, scale, groups, lo, hi, start, PT, nd2, entries, flat,
-            source, B, N, kd, d(self.band), ffi.from_buffer("double[]", chol.T),
-            self.pbtrf, self.pbtrs, d(x), d(F), d(step), d(trial), d(Fnew), d(self.r),
-            d(local._out_both), atol, int(check_start), rtol, stol, max_it,
-            -1 if patience is None else patience, no_progress, decrease, d(self.history),
-            self.ints, self.doubles, self.doubles + 1, self.ints + 1)
+        args, at = self._args, self._slots
+        args[at["constants"]] = ffi.from_buffer("double[]", constants)
+        args[at["initial"]] = ffi.from_buffer("double[]", initial)
+        args[at["chol"]] = ffi.from_buffer("double[]", chol.T)
+        args[at["x"]] = ffi.from_buffer("double[]", x)
+        t = at["tests"]
+        args[t:t + 8] = (atol, int(check_start), rtol, stol, max_it,
+                         -1 if patience is None else patience, no_progress, decrease)
+        if self.dtp is not None:
+            self.dtp.begin()
+        status = self.lib.fem_dual_slab_newton(*args)
+        F = self.F
+        if self.dtp is not None:
+            self.dtp.end(status == 0)
         if status != 0:
             return None
         it, reason = self.ints[0], self.ints[1]
@@ -722,3 +749,60 @@ class NativeNewton:
                                   self.history[:it + 1].tolist(),
                                   BandedLU.of_cholesky(chol, kd) if it > 0 else None,
                                   float(self.doubles[0]), float(self.doubles[1]))
+
+
+class _ImplicitMap:
+    """What NativeNewton's C loop needs to solve an implicit DtP map (fem_dual.pointwise.
+    PointwiseDtP) inside each evaluation: its expression's packed rows, where the dual state,
+    X and G_x^-1 sit in them and in the density's rows, as a fem_dual_dtp struct."""
+
+    def __init__(self, newton: "NativeNewton", free: np.ndarray):
+        from fem_dual import native
+        from fem_dual.pointwise import BRANCH_TOL, LAST_STEP, MAX_IT
+
+        local, ffi = newton.local, newton.ffi
+        p = local.problem
+        self.map = dtp = p.pointwise
+        self.local = local
+        self.expr = expr = native.PackedExpression(dtp._eval.compiled, dtp.cells)
+        n, points, cells = dtp.n, len(dtp.points), len(dtp.cells)
+        index = expr.index(p.w)
+        both = newton.expr
+        arrays = {
+            "wfree": free[index], "wslot": np.broadcast_to(expr.slot(p.w), index.shape),
+            "xslot": expr.slot(dtp.X), "xdofs": dtp.dofs,
+            "both_xslot": both.slot(dtp.X), "both_xindex": both.index(dtp.X),
+            "both_gslot": both.slot(dtp.Ginv), "both_gindex": both.index(dtp.Ginv)}
+        self._keep = {k: np.ascontiguousarray(a, dtype=np.int64) for k, a in arrays.items()}
+        self._keep.update(out=np.zeros(cells * points * (n + n * n + 1)),
+                          step=np.zeros(cells * points * n), work=np.zeros(2 * n * n))
+        D = self.struct = ffi.new("fem_dual_dtp *")
+        D.kernel, D.points, D.n, D.wsize = expr.kernel, points, n, expr.packed.shape[1]
+        D.nw, D.max_it, D.last_step, D.branch_tol = index.shape[1], MAX_IT, LAST_STEP, BRANCH_TOL
+        D.nx, D.ng = len(both.slot(dtp.X)), len(both.slot(dtp.Ginv))
+        self._pointers = {}
+        for name, array in list(self._keep.items()) + [
+                ("packed", expr.packed), ("coords", expr.coords), ("X", dtp.X.x.array),
+                ("Ginv", dtp.Ginv.x.array)]:
+            kind = "int64_t *" if array.dtype == np.int64 else "double *"
+            self._pointers[name] = pointer = native.pointer(ffi, array, kind)
+            setattr(D, name, pointer)
+        self._ffi = ffi
+        self._start: Optional[np.ndarray] = None
+
+    def begin(self) -> None:
+        """Pack the map's rows at the current state and constants; keep X to go back to."""
+        self.expr.pack()
+        self._constants = self.expr.constants()
+        self.struct.c = self._ffi.from_buffer("double[]", self._constants)
+        self._start = self.map.X.x.array.copy()
+
+    def end(self, solved: bool) -> None:
+        """After the C loop: the map is held at its last state, or X as it was (the numpy
+        iteration solves the map again)."""
+        local = self.local
+        if solved:  # (LocalAction.native_newton holds it at the last iterate)
+            self.map.iterations = self.struct.iterations
+        else:
+            self.map.X.x.array[:] = self._start
+            local._held = None

@@ -16,6 +16,11 @@ What it holds:
 - `dtp_newton`: the Newton iteration of fem_dual.pointwise.PointwiseDtP (an implicit DtP map
   solved at every point), the same steps and stopping rule, with G and G_x from the kernel of
   its expression (`PackedExpression` packs that kernel's coefficients as DOLFINx does).
+- `slab_newton`: a slab's Newton of fem_dual.pointwise_newton (the residual and band of
+  fem_dual.local_action from the kernel of the density's gradient and Hessian, the implicit
+  DtP map solved inside each evaluation, the step by scipy's LAPACK, whose routines are
+  passed by address), while every full step is taken; the numpy iteration decides the rest
+  (line search, failures), so those rules live in one place.
 """
 from __future__ import annotations
 
@@ -203,6 +208,20 @@ int fem_dual_dtp_newton(uintptr_t kernel, int cells, int points, int n, int wsiz
    where the numpy iteration must decide (a
    residual that is not finite, a Jacobian that is not positive definite, a step that is not
    finite or that the line search would shorten): x is then undefined. */
+/* An implicit DtP map (fem_dual.pointwise.PointwiseDtP) solved inside each evaluation: the
+   dual state's values into its packed rows (wslot, wfree), its Newton (fem_dual_dtp_newton)
+   from the last root X, the branch test and G_x^-1 into Ginv, then X's and Ginv's values into
+   the density's rows (both_*: nx and ng columns a row, from X[both_xindex], Ginv[...]). */
+typedef struct {
+    uintptr_t kernel;
+    int points, n, wsize, nw, max_it, nx, ng, iterations;
+    double last_step, branch_tol;
+    double *packed, *out, *step, *X, *Ginv, *work;
+    const double *c, *coords;
+    const int64_t *xslot, *wslot, *wfree, *xdofs;
+    const int64_t *both_xslot, *both_xindex, *both_gslot, *both_gindex;
+} fem_dual_dtp;
+
 typedef void (*pbtrf_t)(char *, int *, int *, double *, int *, int *);
 typedef void (*pbtrs_t)(char *, int *, int *, int *, double *, int *, double *, int *, int *);
 
@@ -215,7 +234,113 @@ struct slab {
     int64_t nkeep, entries;
     int nstart, npairs, ngroups, nd2;
     const int64_t *cols, *lo, *hi, *start, *flat, *source;
+    fem_dual_dtp *dtp;
 };
+
+/* Whether the symmetric part S of the n x n matrix A is positive definite with its smallest
+   eigenvalue above tol |S|_F (so above tol times its largest magnitude: the branch test of
+   PointwiseDtP._branch holds; a pass here implies one there). work: n n doubles. */
+static int on_branch(int n, const double *A, double tol, double *work)
+{
+    int i, j, k;
+    double frob = 0.0;
+    for (i = 0; i < n; ++i)
+        for (j = 0; j < n; ++j) {
+            double v = 0.5 * (A[i * n + j] + A[j * n + i]);
+            work[i * n + j] = v;
+            frob += v * v;
+        }
+    frob = sqrt(frob);
+    if (!isfinite(frob)) return 0;
+    for (i = 0; i < n; ++i) work[i * n + i] -= tol * frob;
+    for (k = 0; k < n; ++k) {  /* Cholesky in place */
+        double d = work[k * n + k];
+        for (j = 0; j < k; ++j) d -= work[k * n + j] * work[k * n + j];
+        if (!(d > 0.0)) return 0;
+        d = sqrt(d);
+        work[k * n + k] = d;
+        for (i = k + 1; i < n; ++i) {
+            double v = work[i * n + k];
+            for (j = 0; j < k; ++j) v -= work[i * n + j] * work[k * n + j];
+            work[i * n + k] = v / d;
+        }
+    }
+    return 1;
+}
+
+/* inv = A^-1 (n x n, row-major): the closed form of fem_dual.pointwise._inverse for n = 2,
+   else Gauss-Jordan with partial pivoting. work: 2 n n doubles. */
+static void small_inverse(int n, const double *A, double *inv, double *work)
+{
+    int i, j, k, piv;
+    if (n == 2) {
+        double det = A[0] * A[3] - A[1] * A[2];
+        inv[0] = A[3] / det; inv[3] = A[0] / det;
+        inv[1] = -A[1] / det; inv[2] = -A[2] / det;
+        return;
+    }
+    memcpy(work, A, n * n * sizeof(double));
+    for (i = 0; i < n; ++i)
+        for (j = 0; j < n; ++j) inv[i * n + j] = i == j ? 1.0 : 0.0;
+    for (k = 0; k < n; ++k) {
+        piv = k;
+        for (i = k + 1; i < n; ++i)
+            if (fabs(work[i * n + k]) > fabs(work[piv * n + k])) piv = i;
+        for (j = 0; j < n; ++j) {
+            double t = work[k * n + j]; work[k * n + j] = work[piv * n + j];
+            work[piv * n + j] = t;
+            t = inv[k * n + j]; inv[k * n + j] = inv[piv * n + j]; inv[piv * n + j] = t;
+        }
+        for (i = 0; i < n; ++i) {
+            double f;
+            if (i == k) continue;
+            f = work[i * n + k] / work[k * n + k];
+            for (j = 0; j < n; ++j) {
+                work[i * n + j] -= f * work[k * n + j];
+                inv[i * n + j] -= f * inv[k * n + j];
+            }
+        }
+    }
+    for (k = 0; k < n; ++k) {
+        double d = work[k * n + k];
+        for (j = 0; j < n; ++j) inv[k * n + j] /= d;
+    }
+}
+
+/* The implicit DtP map at the free unknowns x (see fem_dual_dtp); 0, or 1 where the numpy
+   iteration must decide (Newton failed, a root off the branch). */
+static int dtp_solve(const struct slab *S, const double *x)
+{
+    fem_dual_dtp *D = S->dtp;
+    const int n = D->n, width = n + n * n + 1;
+    int e, j, q, status;
+    for (e = 0; e < S->cells; ++e) {
+        double *row = D->packed + (int64_t)e * D->wsize;
+        for (j = 0; j < D->nw; ++j) {
+            int64_t f = D->wfree[(int64_t)e * D->nw + j];
+            if (f >= 0) row[D->wslot[(int64_t)e * D->nw + j]] = x[f];
+        }
+    }
+    status = fem_dual_dtp_newton(D->kernel, S->cells, D->points, n, D->wsize, D->packed,
+                                 D->xslot, D->c, D->coords, D->max_it, D->last_step, D->out,
+                                 D->step, D->X, D->xdofs, D->work, &D->iterations);
+    if (status != 0) return 1;
+    for (e = 0; e < S->cells; ++e)
+        for (q = 0; q < D->points; ++q) {
+            const double *Gx = D->out + ((int64_t)e * D->points + q) * width + n;
+            int64_t block = D->xdofs[(int64_t)e * D->points + q];
+            if (!on_branch(n, Gx, D->branch_tol, D->work)) return 1;
+            small_inverse(n, Gx, D->Ginv + block * n * n, D->work);
+        }
+    for (e = 0; e < S->cells; ++e) {
+        double *row = S->packed + (int64_t)e * S->wsize;
+        for (j = 0; j < D->nx; ++j)
+            row[D->both_xslot[j]] = D->X[D->both_xindex[(int64_t)e * D->nx + j]];
+        for (j = 0; j < D->ng; ++j)
+            row[D->both_gslot[j]] = D->Ginv[D->both_gindex[(int64_t)e * D->ng + j]];
+    }
+    return 0;
+}
 
 static double dot(int n, const double *a, const double *b)
 {
@@ -240,6 +365,7 @@ static double slab_evaluate(const struct slab *S, const double *x, double *F)
             if (f >= 0) row[S->wslot[(int64_t)e * S->nw + j]] = x[f];
         }
     }
+    if (S->dtp != NULL && dtp_solve(S, x) != 0) return NAN;
     memset(S->out, 0, (int64_t)S->cells * S->nq * S->ncols * sizeof(double));
     for (e = 0; e < S->cells; ++e)
         S->kernel(S->out + (int64_t)e * S->nq * S->ncols, S->packed + (int64_t)e * S->wsize,
@@ -280,7 +406,7 @@ int fem_dual_slab_newton(uintptr_t kernel, int cells, int nq, int ncols, int wsi
                          double atol, int check_start, double rtol, double stol, int max_it,
                          int patience, double no_progress, double decrease,
                          double *history, int *iterations, double *backward, double *last_step,
-                         int *reason)
+                         int *reason, fem_dual_dtp *dtp)
 {
     struct slab S;
     pbtrf_t factor = (pbtrf_t)pbtrf;
@@ -295,7 +421,7 @@ int fem_dual_slab_newton(uintptr_t kernel, int cells, int nq, int ncols, int wsi
     S.wslot = wslot; S.wfree = wfree; S.r_keep = r_keep; S.r_rows = r_rows;
     S.start_rows = start_rows; S.nkeep = nkeep; S.entries = entries; S.nstart = nstart;
     S.npairs = npairs; S.ngroups = ngroups; S.nd2 = nd2; S.cols = cols; S.lo = lo; S.hi = hi;
-    S.start = start; S.flat = flat; S.source = source;
+    S.start = start; S.flat = flat; S.source = source; S.dtp = dtp;
 
     *backward = 0.0;
     *last_step = INFINITY;
@@ -396,6 +522,15 @@ int fem_dual_rk4(uintptr_t kernel, const double *c, int n, int steps, double h, 
 """
 
 _CDEF = """
+typedef struct {
+    uintptr_t kernel;
+    int points, n, wsize, nw, max_it, nx, ng, iterations;
+    double last_step, branch_tol;
+    double *packed, *out, *step, *X, *Ginv, *work;
+    const double *c, *coords;
+    const int64_t *xslot, *wslot, *wfree, *xdofs;
+    const int64_t *both_xslot, *both_xindex, *both_gslot, *both_gindex;
+} fem_dual_dtp;
 int fem_dual_slab_newton(uintptr_t kernel, int cells, int nq, int ncols, int wsize,
                          double *packed, const double *c, const double *coords, int nw,
                          const int64_t *wslot, const int64_t *wfree, int nd, int bs,
@@ -411,7 +546,7 @@ int fem_dual_slab_newton(uintptr_t kernel, int cells, int nq, int ncols, int wsi
                          double atol, int check_start, double rtol, double stol, int max_it,
                          int patience, double no_progress, double decrease,
                          double *history, int *iterations, double *backward, double *last_step,
-                         int *reason);
+                         int *reason, fem_dual_dtp *dtp);
 int fem_dual_dtp_newton(uintptr_t kernel, int cells, int points, int n, int wsize,
                         double *packed, const int64_t *xslot, const double *c,
                         const double *coords, int max_it, double last_step, double *out,

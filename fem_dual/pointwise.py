@@ -29,6 +29,7 @@ __all__ = ["PointwiseDtP", "BRANCH_TOL"]
 
 BRANCH_TOL = 1e-3  # lambda_min / lambda_max of G_x below this: leaving the base state branch
 LAST_STEP = 1e-8  # a relative Newton step below this is the last one
+MAX_IT = 50  # Newton steps at most
 CONVERGED, NOT_FINITE, NOT_CONVERGED = 0, 1, 2  # how the pointwise Newton ended
 
 
@@ -79,7 +80,7 @@ class PointwiseDtP:
         """Start from the base state (the DtP image of the zero dual state)."""
         self.X.x.array.reshape(-1, self.n)[:] = xbar
 
-    def solve(self, comm, max_it: int = 50) -> Optional[str]:
+    def solve(self, comm, max_it: int = MAX_IT) -> Optional[str]:
         """Solve G = 0 at every point; returns None, or a message (the same on every rank).
 
         The branch test (eigenvalues of G_x) is made at the root and, when Newton fails, at the
