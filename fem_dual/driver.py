@@ -240,6 +240,7 @@ class Simulation:
                            else PointwiseNewtonSolver)(self.problem)
             self.sampler = VertexSampler(self.problem, with_dual=with_dual, recovery=recovery,
                                          momenta=self.solver.local.momenta)
+            self.solver.local.factor_solution = with_dual  # (the companion takes no tangents)
         else:
             self.problem = SlabProblem(solved, degree, cells, comm, base, mesh, shared_predictor)
             solver_class = LinearSlabSolver if scene.linear else NewtonSlabSolver

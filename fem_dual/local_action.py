@@ -40,7 +40,8 @@ _QUIET = [0]  # how many quiet blocks are running (one np.errstate is enough)
 # The factors of Newton's last Jacobian serve the tangents at its last iterate when that step
 # moved the state by at most this much (relative): the Jacobians differ by as little, and the
 # tangents feed estimates (a factorisation less per slab: 85 us of 3 ms on curl3d T = 8, p = 6,
-# 8 cells)
+# 8 cells); after a longer step the compiled Newton factors the Jacobian there itself, from
+# the band it assembles anyway
 FACTORS_KEPT_STEP = 1e-8
 
 
@@ -305,6 +306,9 @@ class LocalAction:
         self._both_at: Optional[tuple] = None  # (version, state, R) of the last evaluation
         self._tangent_at: Optional[tuple] = None  # (state, LU, tangent matrix)
         self._factors_at: Optional[tuple] = None  # (version, state, factors of J there)
+        # whether a compiled Newton factors the Jacobian at its solution for the tangents (an
+        # error companion, which takes none, does without: fem_dual.driver.Simulation)
+        self.factor_solution = True
         self._mass_at: Optional[tuple] = None  # (M, M^-1, d initial rows / d z0)
 
     def _pattern(self, upper: list) -> list:
@@ -401,8 +405,8 @@ class LocalAction:
         self._both_at = (p.version, p.w.x.array.copy(), result.F)
         if p.pointwise is not None:  # X and G_x^-1 solved there by the C loop
             self._held, self.error = self._both_at[:2], None
-        if result.lu is not None and result.last_step <= FACTORS_KEPT_STEP:
-            self._factors_at = self._both_at[:2] + (result.lu,)
+        if result.at_x is not None:
+            self._factors_at = self._both_at[:2] + (result.at_x,)
         return result
 
     @property
@@ -627,6 +631,7 @@ class NativeNewtonResult:
     lu: Optional[BandedLU]
     backward: float
     last_step: float  # |the last step| / |x| (inf without a step)
+    at_x: Optional[BandedLU] = None  # the factors of the Jacobian at x (to round-off)
 
 
 _REASONS = {1: "CONVERGED_FNORM_ABS", 2: "CONVERGED_FNORM_RELATIVE",
@@ -683,7 +688,7 @@ class NativeNewton:
         self.r_rows = np.ascontiguousarray(local._r_rows, dtype=np.int64)
         self.start_rows = np.ascontiguousarray(local.start_rows, dtype=np.int64)
         self.Tg = np.ascontiguousarray(local._Tg)
-        self.ints = self.ffi.new("int[2]")
+        self.ints = self.ffi.new("int[3]")  # iterations, reason, final factors made
         self.doubles = self.ffi.new("double[2]")  # the backward floor, the last step
         self.F, self.step, self.trial, self.Fnew = self.work
         cells = len(local.cells)
@@ -713,6 +718,8 @@ class NativeNewton:
         self._slots["tests"] = self._slots["x"] + 7
         self.dtp = _ImplicitMap(self, free) if p.pointwise is not None else None
         self._args.append(self.ffi.NULL if self.dtp is None else self.dtp.struct)
+        self._slots["final"] = len(self._args)
+        self._args += [None, FACTORS_KEPT_STEP, self.ints + 2]
 
     def run(self, x0: np.ndarray, atol: float, check_start: bool, rtol: float, stol: float,
             max_it: int, patience: Optional[int], no_progress: float,
@@ -733,6 +740,8 @@ class NativeNewton:
         args[at["initial"]] = ffi.from_buffer("double[]", initial)
         args[at["chol"]] = ffi.from_buffer("double[]", chol.T)
         args[at["x"]] = ffi.from_buffer("double[]", x)
+        final = np.empty((kd + 1, N), order="F") if local.factor_solution else None
+        args[at["final"]] = ffi.NULL if final is None else ffi.from_buffer("double[]", final.T)
         t = at["tests"]
         args[t:t + 8] = (atol, int(check_start), rtol, stol, max_it,
                          -1 if patience is None else patience, no_progress, decrease)
@@ -745,10 +754,13 @@ class NativeNewton:
         if status != 0:
             return None
         it, reason = self.ints[0], self.ints[1]
+        last_step = float(self.doubles[1])
+        lu = BandedLU.of_cholesky(chol, kd) if it > 0 else None
+        at_x = (BandedLU.of_cholesky(final, kd) if self.ints[2]
+                else lu if last_step <= FACTORS_KEPT_STEP else None)
         return NativeNewtonResult(_REASONS[reason], x, F.copy(),
-                                  self.history[:it + 1].tolist(),
-                                  BandedLU.of_cholesky(chol, kd) if it > 0 else None,
-                                  float(self.doubles[0]), float(self.doubles[1]))
+                                  self.history[:it + 1].tolist(), lu,
+                                  float(self.doubles[0]), last_step, at_x)
 
 
 class _ImplicitMap:

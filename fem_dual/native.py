@@ -204,8 +204,10 @@ int fem_dual_dtp_newton(uintptr_t kernel, int cells, int points, int n, int wsiz
    Returns 0 when Newton ended (*reason: 1 CONVERGED_FNORM_ABS, 2 CONVERGED_FNORM_RELATIVE,
    3 CONVERGED_SNORM_RELATIVE, -1 DIVERGED_MAX_IT; x the last iterate, F its residual, out
    its evaluation, chol the last step's factors, *last_step that step relative to x,
-   history[0 .. *iterations], *backward the backward floor at the last factored iterate), 1
-   where the numpy iteration must decide (a
+   history[0 .. *iterations], *backward the backward floor at the last factored iterate; where
+   `final` is not NULL and Newton's last step exceeded kept_step (relative: else chol serves
+   as the factors at x), the Jacobian at x factored into it, Fortran (kd + 1) x N, and
+   *final_factored 1 where it is positive definite), 1 where the numpy iteration must decide (a
    residual that is not finite, a Jacobian that is not positive definite, a step that is not
    finite or that the line search would shorten): x is then undefined. */
 /* An implicit DtP map (fem_dual.pointwise.PointwiseDtP) solved inside each evaluation: the
@@ -385,10 +387,26 @@ static double slab_evaluate(const struct slab *S, const double *x, double *F)
     memset(F, 0, S->N * sizeof(double));
     for (k = 0; k < S->nkeep; ++k) F[S->r_rows[k]] += S->r[S->r_keep[k]];
     for (j = 0; j < S->nstart; ++j) F[S->start_rows[j]] += S->initial[j];
+    return sqrt(dot(S->N, F, F));
+}
+
+/* The band at the last evaluation (its Hessian in S->out) into S->band; its upper rows into
+   chol (Fortran, (kd + 1) x N); returns the band's 1-norm (the largest column sum). */
+static double slab_band(const struct slab *S, double *chol)
+{
+    const int N = S->N, kd = S->kd, ldab = kd + 1;
+    double largest = 0.0;
+    int i, j;
     fem_dual_band(S->cells, S->nq, S->ncols, S->out, S->npairs, S->cols, S->scale, S->ngroups,
                   S->lo, S->hi, S->start, S->PT, S->nd2, S->entries, S->flat, S->source, S->B,
-                  S->band, (int64_t)(3 * S->kd + 1) * S->N);
-    return sqrt(dot(S->N, F, F));
+                  S->band, (int64_t)(3 * kd + 1) * N);
+    for (j = 0; j < N; ++j) {
+        double s = 0.0;
+        for (i = 0; i < 3 * kd + 1; ++i) s += fabs(S->band[(int64_t)i * N + j]);
+        if (s > largest) largest = s;
+        for (i = 0; i <= kd; ++i) chol[(int64_t)j * ldab + i] = S->band[(int64_t)(kd + i) * N + j];
+    }
+    return largest;
 }
 
 int fem_dual_slab_newton(uintptr_t kernel, int cells, int nq, int ncols, int wsize,
@@ -406,13 +424,14 @@ int fem_dual_slab_newton(uintptr_t kernel, int cells, int nq, int ncols, int wsi
                          double atol, int check_start, double rtol, double stol, int max_it,
                          int patience, double no_progress, double decrease,
                          double *history, int *iterations, double *backward, double *last_step,
-                         int *reason, fem_dual_dtp *dtp)
+                         int *reason, fem_dual_dtp *dtp, double *final,
+                         double kept_step, int *final_factored)
 {
     struct slab S;
     pbtrf_t factor = (pbtrf_t)pbtrf;
     pbtrs_t solve = (pbtrs_t)pbtrs;
     double fnorm, first, gnorm;
-    int it = 0, i, j, info, one = 1, ldab = kd + 1;
+    int it = 0, j, info, one = 1, ldab = kd + 1;
     char upper = 'U';
     S.kernel = (kernel_t)kernel; S.cells = cells; S.nq = nq; S.ncols = ncols;
     S.wsize = wsize; S.nw = nw; S.nd = nd; S.bs = bs; S.N = N; S.kd = kd;
@@ -425,6 +444,7 @@ int fem_dual_slab_newton(uintptr_t kernel, int cells, int nq, int ncols, int wsi
 
     *backward = 0.0;
     *last_step = INFINITY;
+    *final_factored = 0;
     fnorm = slab_evaluate(&S, x, F);
     history[0] = first = fnorm;
     *iterations = 0;
@@ -434,17 +454,11 @@ int fem_dual_slab_newton(uintptr_t kernel, int cells, int nq, int ncols, int wsi
         return 0;
     }
     for (;;) {
-        double largest = 0.0, xmax = 0.0, ynorm, xnorm, bw;
-        for (j = 0; j < N; ++j) {  /* the 1-norm of the band's columns; max |x| */
-            double s = 0.0;
-            for (i = 0; i < 3 * kd + 1; ++i) s += fabs(band[(int64_t)i * N + j]);
-            if (s > largest) largest = s;
+        double largest = slab_band(&S, chol), xmax = 0.0, ynorm, xnorm, bw;
+        for (j = 0; j < N; ++j)
             if (fabs(x[j]) > xmax) xmax = fabs(x[j]);
-        }
         bw = 8.0 * 2.220446049250313e-16 * largest * xmax;
         *backward = isfinite(bw) ? bw : 0.0;
-        for (j = 0; j < N; ++j)
-            for (i = 0; i <= kd; ++i) chol[(int64_t)j * ldab + i] = band[(int64_t)(kd + i) * N + j];
         factor(&upper, &N, &kd, chol, &ldab, &info);
         if (info != 0) return 1;
         memcpy(step, F, N * sizeof(double));
@@ -471,6 +485,11 @@ int fem_dual_slab_newton(uintptr_t kernel, int cells, int nq, int ncols, int wsi
         else if ((patience >= 0 && it >= (max_it < patience ? max_it : patience)
                   && fnorm > no_progress * first) || it >= max_it) *reason = -1;
         else continue;
+        if (final != NULL && *last_step > kept_step) {  /* the Jacobian at x, factored */
+            slab_band(&S, final);
+            factor(&upper, &N, &kd, final, &ldab, &info);
+            *final_factored = info == 0;
+        }
         return 0;
     }
 }
@@ -546,7 +565,8 @@ int fem_dual_slab_newton(uintptr_t kernel, int cells, int nq, int ncols, int wsi
                          double atol, int check_start, double rtol, double stol, int max_it,
                          int patience, double no_progress, double decrease,
                          double *history, int *iterations, double *backward, double *last_step,
-                         int *reason, fem_dual_dtp *dtp);
+                         int *reason, fem_dual_dtp *dtp, double *final,
+                         double kept_step, int *final_factored);
 int fem_dual_dtp_newton(uintptr_t kernel, int cells, int points, int n, int wsize,
                         double *packed, const int64_t *xslot, const double *c,
                         const double *coords, int max_it, double last_step, double *out,
