@@ -19,7 +19,7 @@ from dolfinx import fem
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from fem_dual.base_state import predictor
+from fem_dual.base_state import RK4_STEPS_PER_NODE, predictor
 from fem_dual.compat import constant, release_function_vector, vector_space
 from fem_dual.pointwise import PointwiseDtP
 from fem_dual.scenes.base import Scene
@@ -73,11 +73,9 @@ class SlabProblem:
         self.t0 = constant(msh, 0.0)
         self.x0, self.v0 = constant(msh, zero), constant(msh, zero)
         self.predictor = None
-        # (rk4: p + 1 steps a cell. Fewer cost accuracy: curl3d T = 8 --rtol 1e-8 at p = 4, 4
-        # cells ended 3.2e-10 off with 5 a cell, 1.03e-8 off with 2; when the companion read
-        # the same run, its estimate (7e-9) missed that)
         if base in ("predictor", "rk4"):  # a function of time, one degree above the duals
-            self.predictor = shared_predictor or predictor(scene, base, cells * (degree + 1))
+            self.predictor = shared_predictor or predictor(
+                scene, base, cells * (degree + 1) * RK4_STEPS_PER_NODE)
             space = vector_space(msh, degree + 1, n)
             self.xbar, self.vbar = fem.Function(space), fem.Function(space)
             # node coordinates of the scalar space: the blocked space's nodes, in its order
