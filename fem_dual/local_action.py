@@ -76,9 +76,11 @@ def _quiet(method):
 
 
 class BandedLU:
-    """The factors of a symmetric banded matrix for later solves: Cholesky (LAPACK dpbtrf),
-    which the slab Jacobians admit near their solution (positive definite there), else LU with
-    pivoting (dgbtrf).
+    """The factors of a symmetric banded matrix for later solves: Cholesky, which the slab
+    Jacobians admit near their solution (positive definite there), else LU with pivoting
+    (LAPACK's dgbtrf). The Cholesky factor is in LAPACK's upper band storage (dpbtrf's): the
+    compiled one of fem_dual.native (twice the reference LAPACK's speed here) where it is
+    available, else dpbtrf.
 
     Args:
         band: the matrix in dgbtrf's storage with kl = ku = `kd` (band[2 kd + i - j, j]); rows
@@ -86,9 +88,20 @@ class BandedLU:
     """
 
     def __init__(self, band: np.ndarray, kd: int):
+        from fem_dual import native
+
         self.kd = kd
-        self.cholesky, info = lapack.dpbtrf(band[kd:2 * kd + 1])
         self.piv = None
+        self._native = native.library()
+        if self._native is not None:
+            ffi, lib = self._native
+            upper = np.array(band[kd:2 * kd + 1], dtype=float, order="F")
+            info = lib.fem_dual_band_cholesky(upper.shape[1], kd,
+                                              ffi.from_buffer("double[]", upper.T), kd + 1,
+                                              ffi.from_buffer("double[]", np.empty(kd + 1)))
+            self.cholesky = upper
+        else:
+            self.cholesky, info = lapack.dpbtrf(band[kd:2 * kd + 1])
         if info != 0:  # not positive definite
             self.cholesky = None
             self.lu, self.piv, info = lapack.dgbtrf(band, kd, kd, overwrite_ab=1)
@@ -96,13 +109,24 @@ class BandedLU:
 
     @classmethod
     def of_cholesky(cls, cholesky: np.ndarray, kd: int) -> "BandedLU":
-        """The factors of dpbtrf computed elsewhere (fem_dual.native's Newton): its upper
-        storage, (kd + 1, N)."""
+        """The Cholesky factor computed elsewhere (fem_dual.native's Newton): upper storage,
+        (kd + 1, N), Fortran order."""
+        from fem_dual import native
+
         lu = cls.__new__(cls)
         lu.kd, lu.cholesky, lu.piv, lu.singular = kd, cholesky, None, False
+        lu._native = native.library()
         return lu
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
+        if self.cholesky is not None and self._native is not None:
+            ffi, lib = self._native
+            x = np.array(rhs, dtype=float, order="C")  # (N,) or (N, columns)
+            N = self.cholesky.shape[1]
+            lib.fem_dual_band_solve(N, self.kd, ffi.from_buffer("double[]", self.cholesky.T),
+                                    self.kd + 1, x.size // N if N else 0,
+                                    ffi.from_buffer("double[]", x))
+            return x
         if self.cholesky is not None:
             x, info = lapack.dpbtrs(self.cholesky, rhs)
         else:
@@ -276,6 +300,9 @@ class LocalAction:
         keep = (i >= 0) & (j >= 0)
         i, j, source = i[keep], j[keep], source[keep]
         self.kd = kd = int(np.abs(i - j).max(initial=0))
+        up = i <= j  # the upper band alone, in LAPACK's storage (fem_dual.native's Newton)
+        self._u_flat = (kd + i[up] - j[up]) + j[up] * (kd + 1)
+        self._u_source = source[up]
         self._band_rows = 3 * kd + 1  # dgbtrf's storage: kd more rows for the fill-in
         self._j_source = source
         self._j_flat = (2 * kd + i - j) * N + j  # band[2 kd + i - j, j] = J[i, j]
@@ -638,21 +665,6 @@ _REASONS = {1: "CONVERGED_FNORM_ABS", 2: "CONVERGED_FNORM_RELATIVE",
             3: "CONVERGED_SNORM_RELATIVE", -1: "DIVERGED_MAX_IT"}
 
 
-def _lapack_address(name: str) -> int:
-    """The address of scipy's LAPACK routine `name` (scipy.linalg.cython_lapack's capsule)."""
-    import ctypes
-
-    from scipy.linalg import cython_lapack
-
-    capsule = cython_lapack.__pyx_capi__[name]
-    api = ctypes.pythonapi
-    api.PyCapsule_GetName.restype = ctypes.c_char_p
-    api.PyCapsule_GetName.argtypes = [ctypes.py_object]
-    api.PyCapsule_GetPointer.restype = ctypes.c_void_p
-    api.PyCapsule_GetPointer.argtypes = [ctypes.py_object, ctypes.c_char_p]
-    return int(api.PyCapsule_GetPointer(capsule, api.PyCapsule_GetName(capsule)))
-
-
 class NativeNewton:
     """The Newton iteration of fem_dual.pointwise_newton.PointwiseNewtonSolver in compiled code
     (fem_dual.native's fem_dual_slab_newton) for a slab with an explicit DtP map: the same
@@ -678,9 +690,9 @@ class NativeNewton:
         self.wfree = np.ascontiguousarray(free[index])
         self.wslot = np.ascontiguousarray(np.broadcast_to(self.expr.slot(p.w), index.shape),
                                           dtype=np.int64)
-        self.pbtrf, self.pbtrs = _lapack_address("dpbtrf"), _lapack_address("dpbtrs")
         N, kd = local.size, local.kd
-        self.band = np.empty((local._band_rows, N))
+        self.u_flat = np.ascontiguousarray(local._u_flat, dtype=np.int64)
+        self.u_source = np.ascontiguousarray(local._u_source, dtype=np.int64)
         self.r = np.empty(len(local.cells) * local.nd * local.bs)
         self.work = np.empty((4, N))
         self.history = np.empty(64)
@@ -692,8 +704,8 @@ class NativeNewton:
         self.doubles = self.ffi.new("double[2]")  # the backward floor, the last step
         self.F, self.step, self.trial, self.Fnew = self.work
         cells = len(local.cells)
-        (_, _, band_pointers, groups, nd2, entries) = local._native_band
-        cols, scale, lo, hi, start, PT, flat, source, B = band_pointers
+        (_, _, band_pointers, groups, nd2, _) = local._native_band
+        cols, scale, lo, hi, start, PT, _, _, B = band_pointers
         packed = self.expr.pack()  # (its rows stay where they are: packed again per solve)
         ffi = self.ffi
 
@@ -701,25 +713,25 @@ class NativeNewton:
             return native.pointer(ffi, a, kind)
         # the call's arguments, None where each solve gives its own (the pointers keep their
         # arrays alive)
-        self._args = [
+        self.dtp = _ImplicitMap(self, free) if p.pointwise is not None else None
+        # the call's arguments in order; each solve sets those given as a name here
+        args = [
             self.expr.kernel, cells, local.nq, local._out_both.size // (cells * local.nq),
-            packed.shape[1], d(packed), None, d(self.expr.coords), self.wfree.shape[1],
+            packed.shape[1], d(packed), "constants", d(self.expr.coords), self.wfree.shape[1],
             d(self.wslot, "int64_t *"), d(self.wfree, "int64_t *"), local.nd, local.bs,
             d(self.Tg), len(self.r_keep), d(self.r_keep, "int64_t *"),
             d(self.r_rows, "int64_t *"), len(self.start_rows),
-            d(self.start_rows, "int64_t *"), None, len(local.pairs), cols, scale, groups, lo,
-            hi, start, PT, nd2, entries, flat, source, B, N, kd, d(self.band), None,
-            self.pbtrf, self.pbtrs, None, d(self.F), d(self.step), d(self.trial),
-            d(self.Fnew), d(self.r), d(local._out_both), None, None, None, None, None, None,
-            None, None, d(self.history), self.ints, self.doubles, self.doubles + 1,
-            self.ints + 1]
-        self._slots = {name: self._args.index(None, after) for name, after in (
-            ("constants", 0), ("initial", 7), ("chol", 36), ("x", 38))}
-        self._slots["tests"] = self._slots["x"] + 7
-        self.dtp = _ImplicitMap(self, free) if p.pointwise is not None else None
-        self._args.append(self.ffi.NULL if self.dtp is None else self.dtp.struct)
-        self._slots["final"] = len(self._args)
-        self._args += [None, FACTORS_KEPT_STEP, self.ints + 2]
+            d(self.start_rows, "int64_t *"), "initial", len(local.pairs), cols, scale, groups,
+            lo, hi, start, PT, nd2, len(self.u_flat), d(self.u_flat, "int64_t *"),
+            d(self.u_source, "int64_t *"), B, N, kd, "chol",
+            d(np.empty(kd + 1)), "x", d(self.F), d(self.step), d(self.trial), d(self.Fnew),
+            d(self.r), d(local._out_both), "atol", "check_start", "rtol", "stol", "max_it",
+            "patience", "no_progress", "decrease", d(self.history), self.ints, self.doubles,
+            self.doubles + 1, self.ints + 1,
+            self.ffi.NULL if self.dtp is None else self.dtp.struct, "final",
+            FACTORS_KEPT_STEP, self.ints + 2]
+        self._slots = {a: i for i, a in enumerate(args) if isinstance(a, str)}
+        self._args = args
 
     def run(self, x0: np.ndarray, atol: float, check_start: bool, rtol: float, stol: float,
             max_it: int, patience: Optional[int], no_progress: float,
@@ -742,9 +754,11 @@ class NativeNewton:
         args[at["x"]] = ffi.from_buffer("double[]", x)
         final = np.empty((kd + 1, N), order="F") if local.factor_solution else None
         args[at["final"]] = ffi.NULL if final is None else ffi.from_buffer("double[]", final.T)
-        t = at["tests"]
-        args[t:t + 8] = (atol, int(check_start), rtol, stol, max_it,
-                         -1 if patience is None else patience, no_progress, decrease)
+        for name, value in (("atol", atol), ("check_start", int(check_start)), ("rtol", rtol),
+                            ("stol", stol), ("max_it", max_it),
+                            ("patience", -1 if patience is None else patience),
+                            ("no_progress", no_progress), ("decrease", decrease)):
+            args[at[name]] = value
         if self.dtp is not None:
             self.dtp.begin()
         status = self.lib.fem_dual_slab_newton(*args)

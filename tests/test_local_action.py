@@ -68,14 +68,23 @@ def test_momenta_equal_the_forms_recovery():
     assert np.abs(local.momenta() - expected).max() <= 1e-13 * np.abs(expected).max()
 
 
+def _more_steps_only_at_round_off(x, y) -> bool:
+    """Where run x's Newton took more steps on a slab than run y's, one more, taken at its
+    round-off floor (its residual before it below 1e-12 of its first)."""
+    return all(mine <= theirs or (mine == theirs + 1 and history[-2] <= 1e-12 * history[0])
+               for mine, theirs, history in zip(x.solver["newton_iterations"],
+                                                 y.solver["newton_iterations"],
+                                                 x.solver["residual_histories"]))
+
+
 @pytest.mark.mpi
 @pytest.mark.parametrize("scene, slabs, rtol", [("curl3d", 3, None), ("curl2d", 4, None),
                                                 ("curl2d-lifted", 4, None),
                                                 ("curl3d", 1, 1e-8)])
 def test_pointwise_newton_gives_the_snes_answer(scene, slabs, rtol):
-    """The same slabs, iterations, vertex values (1e-12) and estimate (1e-6 relative: a
-    difference of close solutions, or round-off of the states) as the PETSc SNES on the
-    forms."""
+    """The same slabs, iterations (one more at the round-off floor), vertex values (1e-12)
+    and estimate (1e-6 relative: a difference of close solutions, or round-off of the states)
+    as the PETSc SNES on the forms."""
     kw = dict(T=2.0, cells=4, degree=4, reference="none")
     kw.update(slabs=slabs) if rtol is None else kw.update(rtol=rtol)
     a = run(RunConfig.create(scene, assembly="pointwise", **kw))
@@ -83,7 +92,10 @@ def test_pointwise_newton_gives_the_snes_answer(scene, slabs, rtol):
     assert a.solver["assembly"] == "pointwise" and a.solver["kind"] == "newton"
     assert b.solver["assembly"] == "forms" and b.solver["kind"] == "snes"
     assert a.slab_lengths == b.slab_lengths
-    assert a.solver["newton_iterations"] == b.solver["newton_iterations"]
+    # their factorisations differ in round-off (LAPACK's under PETSc, fem_dual.native's here):
+    # where both reach the round-off floor, one can take a step more there (curl2d-lifted's
+    # second slab: 17 steps, then 1.67e-14 against 1.42e-14, a step more on one path)
+    assert _more_steps_only_at_round_off(a, b) and _more_steps_only_at_round_off(b, a)
     scale = np.abs(b.x).max()
     assert np.abs(a.x - b.x).max() <= 1e-12 * scale and np.abs(a.v - b.v).max() <= 1e-12 * scale
     # (near 1e-11 the estimate is round-off of the states themselves)
