@@ -578,6 +578,17 @@ def _stress(args, comm: MPI.Comm) -> int:
     return 0 if passed else 1
 
 
+def _check_cache_home() -> None:
+    """InputError where the cache folder for compiled code cannot be one: FFCx (its `fenics`
+    folder) and fem_dual.native keep their libraries under $XDG_CACHE_HOME (default
+    ~/.cache), and a file there ended every run in a traceback from the JIT."""
+    root = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    for path in (root, os.path.join(root, "fenics")):
+        if os.path.exists(path) and not os.path.isdir(path):
+            raise InputError(f"{path} (the cache for compiled code: XDG_CACHE_HOME, default "
+                             "~/.cache) is not a directory")
+
+
 def main(argv: Optional[Sequence[str]] = None, comm: "Optional[MPI.Comm]" = None) -> int:
     """The command line; returns the exit status. SIGINT/SIGTERM stop a run after the slab at
     hand (fem_dual.faults) for as long as main runs, JSON printing included."""
@@ -599,6 +610,7 @@ def _main(argv: Optional[Sequence[str]], comm: "Optional[MPI.Comm]") -> int:
             return 0
         if args.command in ("run", "orbit"):  # orbit: a continuation stops between orbits
             faults.arm()
+        _check_cache_home()
         if getattr(args, "scene_file", None):
             from fem_dual.scenes import load_scene_file
 

@@ -198,3 +198,16 @@ def test_a_failed_run_writes_its_partial_json_with_infinite_residuals_as_null(ca
     assert data["status"] == "failed" and len(data["t"]) > 1
     assert None in data["solver"]["residual_norms"]
     assert np.isfinite(np.array(data["x"])).all()
+
+
+def test_a_cache_home_that_is_a_file_is_bad_input(tmp_path, monkeypatch, capsys):
+    """FFCx and the compiled loops keep their libraries under $XDG_CACHE_HOME: a file there
+    ended every run in a traceback from the JIT, exit 1 (session 17 hostile test); now exit 2
+    naming it. Listing the scenes compiles nothing and still answers."""
+    cache = tmp_path / "cache"
+    cache.write_text("")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(cache))
+    assert main(["run", "curl3d", "--T", "1", "--cells", "2"]) == 2
+    err = capsys.readouterr().err
+    assert str(cache) in err and "not a directory" in err and "Traceback" not in err
+    assert main(["scenes"]) == 0
