@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import re
 import shutil
 import subprocess
 import tempfile
@@ -598,52 +599,23 @@ int fem_dual_rk4(uintptr_t kernel, const double *c, int n, int steps, double h, 
 }
 """
 
-_CDEF = """
-int fem_dual_band_cholesky(int n, int kd, double *ab, int ldab, double *row);
-void fem_dual_band_solve(int n, int kd, const double *ab, int ldab, int nrhs, double *b);
-typedef struct {
-    uintptr_t kernel;
-    int points, n, wsize, nw, max_it, nx, ng, iterations;
-    double last_step, branch_tol;
-    double *packed, *out, *step, *X, *Ginv, *work;
-    const double *c, *coords;
-    const int64_t *xslot, *wslot, *wfree, *xdofs;
-    const int64_t *both_xslot, *both_xindex, *both_gslot, *both_gindex;
-} fem_dual_dtp;
-int fem_dual_slab_newton(uintptr_t kernel, int cells, int nq, int ncols, int wsize,
-                         double *packed, const double *c, const double *coords, int nw,
-                         const int64_t *wslot, const int64_t *wfree, int nd, int bs,
-                         const double *Tg, int64_t nkeep, const int64_t *r_keep,
-                         const int64_t *r_rows, int nstart, const int64_t *start_rows,
-                         const double *initial, int npairs, const int64_t *cols,
-                         const double *scale, int ngroups, const int64_t *lo,
-                         const int64_t *hi, const int64_t *start, const double *PT, int nd2,
-                         int64_t entries, const int64_t *flat, const int64_t *source,
-                         double *B, int N, int kd, double *chol,
-                         double *row, double *x, double *F,
-                         double *step, double *trial, double *Fnew, double *r, double *out,
-                         double atol, int check_start, double rtol, double stol, int max_it,
-                         int patience, double no_progress, double decrease,
-                         double *history, int *iterations, double *backward, double *last_step,
-                         int *reason, fem_dual_dtp *dtp, double *final,
-                         double kept_step, int *final_factored);
-int fem_dual_dtp_newton(uintptr_t kernel, int cells, int points, int n, int wsize,
-                        double *packed, const int64_t *xslot, const double *c,
-                        const double *coords, int max_it, double last_step, double *out,
-                        double *step, double *X, const int64_t *xdofs, double *work,
-                        int *iterations);
-void fem_dual_band(int cells, int nq, int ncols, const double *out, int npairs,
-                   const int64_t *cols, const double *scale, int ngroups, const int64_t *lo,
-                   const int64_t *hi, const int64_t *start, const double *PT, int nd2,
-                   int64_t entries, const int64_t *flat, const int64_t *source, double *B,
-                   double *band, int64_t band_size);
-int fem_dual_rk4(uintptr_t kernel, const double *c, int n, int steps, double h, double scale,
-                 const double *minv, const double *z0, double *states, double *rates,
-                 double *work);
-"""
-
 _SYMBOLS = ("fem_dual_rk4", "fem_dual_band", "fem_dual_dtp_newton",
             "fem_dual_slab_newton", "fem_dual_band_cholesky", "fem_dual_band_solve")
+
+
+def _declarations(source: str, names) -> str:
+    """What cffi must know of the library, read off its source: the struct typedefs and the
+    prototypes of the functions `names`, as written there."""
+    parts = [m.group(0) for m in re.finditer(r"^typedef struct \{.*?\} \w+;", source,
+                                             re.S | re.M)]
+    for name in names:
+        m = re.search(r"^(?:int|void) " + name + r"\(.*?\)\n\{", source, re.S | re.M)
+        parts.append(m.group(0)[:-1].rstrip() + ";")
+    return "\n".join(parts) + "\n"
+
+
+_CDEF = _declarations(_SOURCE, _SYMBOLS)
+
 _FLAGS = ("-O3", "-fPIC", "-shared")  # no -march=native: the same code on every machine
 _loaded: Dict[str, object] = {}
 
