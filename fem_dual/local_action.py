@@ -667,11 +667,12 @@ _REASONS = {1: "CONVERGED_FNORM_ABS", 2: "CONVERGED_FNORM_RELATIVE",
 
 class NativeNewton:
     """The Newton iteration of fem_dual.pointwise_newton.PointwiseNewtonSolver in compiled code
-    (fem_dual.native's fem_dual_slab_newton) for a slab with an explicit DtP map: the same
-    evaluations, band, banded Cholesky (scipy's LAPACK) and tests, while every full step is
-    taken; where the line search would shorten a step, or a factorisation or value fails,
-    `run` returns None and the numpy iteration starts over (the failure paths stay in one
-    place). One call per solve instead of some 30 Python calls per Newton step.
+    (fem_dual.native's fem_dual_slab_newton), an implicit DtP map solved inside each
+    evaluation (_ImplicitMap): the same evaluations, band, banded Cholesky and tests, while
+    every full step is taken; where the line search would shorten a step, or a factorisation,
+    a value or the DtP map fails, `run` returns None and the numpy iteration starts over (the
+    failure paths stay in one place). One call per solve instead of some 30 Python calls per
+    Newton step.
 
     Args:
         local: the slab's pointwise assembly (with its compiled band).
@@ -711,10 +712,9 @@ class NativeNewton:
 
         def d(a, kind="double *"):
             return native.pointer(ffi, a, kind)
-        # the call's arguments, None where each solve gives its own (the pointers keep their
-        # arrays alive)
         self.dtp = _ImplicitMap(self, free) if p.pointwise is not None else None
-        # the call's arguments in order; each solve sets those given as a name here
+        # the call's arguments in order (the pointers keep their arrays alive); each solve
+        # sets those given as a name here
         args = [
             self.expr.kernel, cells, local.nq, local._out_both.size // (cells * local.nq),
             packed.shape[1], d(packed), "constants", d(self.expr.coords), self.wfree.shape[1],
