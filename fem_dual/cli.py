@@ -581,12 +581,14 @@ def _stress(args, comm: MPI.Comm) -> int:
 def _check_cache_home() -> None:
     """InputError where the cache folder for compiled code cannot be one: FFCx (its `fenics`
     folder) and fem_dual.native keep their libraries under $XDG_CACHE_HOME (default
-    ~/.cache), and a file there ended every run in a traceback from the JIT."""
+    ~/.cache), and a file there, or above it, ended every run in a traceback from the JIT."""
     root = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    for path in (root, os.path.join(root, "fenics")):
-        if os.path.exists(path) and not os.path.isdir(path):
-            raise InputError(f"{path} (the cache for compiled code: XDG_CACHE_HOME, default "
-                             "~/.cache) is not a directory")
+    path = os.path.abspath(os.path.join(root, "fenics"))
+    while not os.path.exists(path) and os.path.dirname(path) != path:
+        path = os.path.dirname(path)  # the nearest part of it that exists
+    if not os.path.isdir(path):
+        raise InputError(f"{path} is not a directory, so the cache for compiled code "
+                         f"({root}: XDG_CACHE_HOME, default ~/.cache) cannot be made there")
 
 
 def main(argv: Optional[Sequence[str]] = None, comm: "Optional[MPI.Comm]" = None) -> int:

@@ -203,11 +203,20 @@ def test_a_failed_run_writes_its_partial_json_with_infinite_residuals_as_null(ca
 def test_a_cache_home_that_is_a_file_is_bad_input(tmp_path, monkeypatch, capsys):
     """FFCx and the compiled loops keep their libraries under $XDG_CACHE_HOME: a file there
     ended every run in a traceback from the JIT, exit 1 (session 17 hostile test); now exit 2
-    naming it. Listing the scenes compiles nothing and still answers."""
+    naming it; so does a file above it (a cache home below a file: session 17's second hostile
+    test) or in place of its fenics folder. Listing the scenes compiles nothing and still
+    answers."""
     cache = tmp_path / "cache"
     cache.write_text("")
     monkeypatch.setenv("XDG_CACHE_HOME", str(cache))
+    for home in (cache, cache / "below", cache / "below" / "fenics"):
+        monkeypatch.setenv("XDG_CACHE_HOME", str(home))
+        assert main(["run", "curl3d", "--T", "1", "--cells", "2"]) == 2
+        err = capsys.readouterr().err
+        assert str(cache) in err and "not a directory" in err and "Traceback" not in err
+    (tmp_path / "home").mkdir()
+    (tmp_path / "home" / "fenics").write_text("")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "home"))
     assert main(["run", "curl3d", "--T", "1", "--cells", "2"]) == 2
-    err = capsys.readouterr().err
-    assert str(cache) in err and "not a directory" in err and "Traceback" not in err
+    assert "fenics is not a directory" in capsys.readouterr().err
     assert main(["scenes"]) == 0
