@@ -15,10 +15,10 @@ forces), so unresolved modes are not forced.
 
 The flow predictor ("rk4") is for motions that are not stiff: classical Runge-Kutta from the
 start, RK4_STEPS_PER_NODE (p + 1) steps per cell, read at the base state's nodes by cubic
-Hermites. Near the motion to O(h^4), it leaves the dual fields only a small correction, so Newton converges from the zero
-dual state on slabs several times longer than from the constant start state (curl3d T = 8 at
-rtol 1e-6: 2 slabs of 4 against 8 slabs and 5 failed Newtons), and the correction's
-discretisation error is small with it.
+Hermites. Near the motion to O(h^4), it leaves the dual fields only a small correction, so
+Newton converges from the zero dual state on slabs several times longer than from the constant
+start state (curl3d T = 8 at rtol 1e-6: 2 slabs of 4 against 8 slabs and 5 failed Newtons), and
+the correction's discretisation error is small with it.
 """
 from __future__ import annotations
 

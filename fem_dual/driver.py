@@ -722,8 +722,8 @@ def _null_where_not_finite(value):
 
 def _compiled_loops(sim: "Simulation") -> List[str]:
     """Which inner loops of the run ran in compiled code (fem_dual.native): "rk4" (the rk4
-    base), "band" (the pointwise Jacobian's band), "newton" (the slab's Newton iterations, an
-    explicit DtP map), "dtp" (the implicit DtP map's Newton)."""
+    base), "band" (the pointwise Jacobian's band), "newton" (the slab's Newton iterations),
+    "dtp" (the implicit DtP map's Newton, within those or alone)."""
     loops = []
     if getattr(getattr(sim.problem, "predictor", None), "compiled", False):
         loops.append("rk4")

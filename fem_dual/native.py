@@ -203,9 +203,9 @@ int fem_dual_dtp_newton(uintptr_t kernel, int cells, int points, int n, int wsiz
    a Dirichlet one), calls the kernel of the density's gradient and Hessian on every cell into
    `out`, assembles R (the residual of LocalAction._residual: r_e = Tg_e g_e, scattered to rows
    r_rows, plus the initial rows); where a step is factored, the band (fem_dual_band, its
-   entries on and above the diagonal only, straight into LAPACK's upper storage). The step is LAPACK's
-   banded Cholesky (fem_dual_band_cholesky, LAPACK's storage) of the band's upper rows into
-   `chol` (Fortran order, (kd + 1) x N); row: kd + 1 doubles of work.
+   entries on and above the diagonal only, straight into `chol`: LAPACK's upper storage,
+   Fortran order, (kd + 1) x N), factored there by fem_dual_band_cholesky; row: kd + 1
+   doubles of work.
    Returns 0 when Newton ended (*reason: 1 CONVERGED_FNORM_ABS, 2 CONVERGED_FNORM_RELATIVE,
    3 CONVERGED_SNORM_RELATIVE, -1 DIVERGED_MAX_IT; x the last iterate, F its residual, out
    its evaluation, chol the last step's factors, *last_step that step relative to x,
