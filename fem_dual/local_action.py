@@ -368,12 +368,18 @@ class LocalAction:
         p = self.problem
         if p.pointwise is None:
             return None
-        w = p.w.x.array
-        if not (self._held is not None and self._held[0] == p.version
-                and np.array_equal(self._held[1], w)):
+        if not self._current(self._held):
             self.error = p.pointwise.solve(p.comm)
-            self._held = (p.version, w.copy())
+            self._held = (p.version, p.w.x.array.copy())
         return self.error
+
+    def _current(self, kept: Optional[tuple]) -> bool:
+        """Whether `kept`, (version, dual state, ...), was made at the problem's current
+        version and dual state (what the held DtP map, evaluation, factors and tangents are
+        kept against)."""
+        p = self.problem
+        return (kept is not None and kept[0] == p.version
+                and np.array_equal(kept[1], p.w.x.array))
 
     # -- residual and Jacobian --------------------------------------------------------------
 
@@ -505,19 +511,14 @@ class LocalAction:
     def _held_evaluation(self) -> Optional[Tuple[np.ndarray, np.ndarray]]:
         """(the evaluation (cells, q, columns), R) at the current state if the last evaluation
         was there."""
-        p = self.problem
-        if self._both_at is None or self._both_at[0] != p.version or not np.array_equal(
-                self._both_at[1], p.w.x.array):
+        if not self._current(self._both_at):
             return None
         return self._out_both.reshape(len(self.cells), self.nq, -1), self._both_at[2]
 
     def _held_factors(self) -> Optional[BandedLU]:
         """Factors of the Jacobian at the current state to round-off, where Newton's last step
         ended there (fem_dual.native's Newton, its step within FACTORS_KEPT_STEP)."""
-        p, at = self.problem, self._factors_at
-        if at is None or at[0] != p.version or not np.array_equal(at[1], p.w.x.array):
-            return None
-        return at[2]
+        return self._factors_at[2] if self._current(self._factors_at) else None
 
     def _hessian(self, out: np.ndarray) -> np.ndarray:
         """The full symmetric Hessian of the density at the points: (cells, q, 2 bs, 2 bs)."""
@@ -564,11 +565,10 @@ class LocalAction:
     def _tangents(self) -> Tuple["BandedLU", np.ndarray, np.ndarray]:
         """(factors, tangent matrix, Newton change) at the current state, kept while it is
         current."""
-        p = self.problem
-        key = (p.version, p.w.x.array)
-        if (self._tangent_at is None or self._tangent_at[0] != key[0]
-                or not np.array_equal(self._tangent_at[1], key[1])):
-            self._tangent_at = (key[0], key[1].copy()) + self._tangent_matrix()
+        if not self._current(self._tangent_at):
+            p = self.problem
+            key = (p.version, p.w.x.array.copy())
+            self._tangent_at = key + self._tangent_matrix()
         return self._tangent_at[2:]
 
     def _tangent_matrix(self) -> Tuple["BandedLU", np.ndarray, np.ndarray]:

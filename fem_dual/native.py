@@ -367,6 +367,21 @@ static void small_inverse(int n, const double *A, double *inv, double *work)
     }
 }
 
+/* The free unknowns x into the dual state's columns of packed rows (cells x wsize): column
+   wslot[e nw + j] of row e from x[wfree[e nw + j]]; -1 keeps the packed (Dirichlet) value. */
+static void put_state(int cells, int wsize, int nw, double *packed, const int64_t *wslot,
+                      const int64_t *wfree, const double *x)
+{
+    int e, j;
+    for (e = 0; e < cells; ++e) {
+        double *row = packed + (int64_t)e * wsize;
+        for (j = 0; j < nw; ++j) {
+            int64_t f = wfree[(int64_t)e * nw + j];
+            if (f >= 0) row[wslot[(int64_t)e * nw + j]] = x[f];
+        }
+    }
+}
+
 /* The implicit DtP map at the free unknowns x (see fem_dual_dtp); 0, or 1 where the numpy
    iteration must decide (Newton failed, a root off the branch). */
 static int dtp_solve(const struct slab *S, const double *x)
@@ -374,13 +389,7 @@ static int dtp_solve(const struct slab *S, const double *x)
     fem_dual_dtp *D = S->dtp;
     const int n = D->n, width = n + n * n + 1;
     int e, j, q, status;
-    for (e = 0; e < S->cells; ++e) {
-        double *row = D->packed + (int64_t)e * D->wsize;
-        for (j = 0; j < D->nw; ++j) {
-            int64_t f = D->wfree[(int64_t)e * D->nw + j];
-            if (f >= 0) row[D->wslot[(int64_t)e * D->nw + j]] = x[f];
-        }
-    }
+    put_state(S->cells, D->wsize, D->nw, D->packed, D->wslot, D->wfree, x);
     status = fem_dual_dtp_newton(D->kernel, S->cells, D->points, n, D->wsize, D->packed,
                                  D->xslot, D->c, D->coords, D->max_it, D->last_step, D->out,
                                  D->step, D->X, D->xdofs, D->work, &D->iterations);
@@ -410,7 +419,8 @@ static double dot(int n, const double *a, const double *b)
     return s;
 }
 
-/* R (into F) and the band at x; returns |R| (2-norm) */
+/* R at x into F (the implicit DtP map solved there first); returns |R| (2-norm), NaN
+   where the map hands back */
 static double slab_evaluate(const struct slab *S, const double *x, double *F)
 {
     const int local = 0;
@@ -418,13 +428,7 @@ static double slab_evaluate(const struct slab *S, const double *x, double *F)
     const int nq2 = 2 * S->nq;
     int e, a, c, j;
     int64_t k;
-    for (e = 0; e < S->cells; ++e) {
-        double *row = S->packed + (int64_t)e * S->wsize;
-        for (j = 0; j < S->nw; ++j) {
-            int64_t f = S->wfree[(int64_t)e * S->nw + j];
-            if (f >= 0) row[S->wslot[(int64_t)e * S->nw + j]] = x[f];
-        }
-    }
+    put_state(S->cells, S->wsize, S->nw, S->packed, S->wslot, S->wfree, x);
     if (S->dtp != NULL && dtp_solve(S, x) != 0) return NAN;
     memset(S->out, 0, (int64_t)S->cells * S->nq * S->ncols * sizeof(double));
     for (e = 0; e < S->cells; ++e)
