@@ -135,8 +135,18 @@ class FlowPredictor:
         self.scene = scene
         self.n = scene.n
         self.Minv = np.linalg.inv(scene.mass_matrix())
+        scale = float(self.Minv[0, 0])  # M = m I: 1/m scales the force (no matrix product)
+        self._scale = scale
+        self._minv = None if np.array_equal(self.Minv, scale * np.eye(self.n)) else \
+            np.ascontiguousarray(self.Minv)
         if self.force is not None:
+            from fem_dual.native import pointer
+
+            ffi = self._native[0]
             self._constants = self.force.pack(scene)
+            # what every run reads, as C pointers (each keeps its array alive)
+            self._fixed = (pointer(ffi, self._constants), pointer(ffi, self._minv),
+                           pointer(ffi, np.empty(7 * self.n)))
         self.forget()
 
     def forget(self) -> None:
@@ -169,16 +179,13 @@ class FlowPredictor:
 
         ffi, lib = self._native
         n, steps = self.n, self.steps
-        Minv = self.Minv
-        scale = float(Minv[0, 0])
-        minv = None if np.array_equal(Minv, scale * np.eye(n)) else np.ascontiguousarray(Minv)
+        constants, minv, work = self._fixed
         states = np.zeros((steps + 1, 2 * n))
         rates = np.zeros((steps + 1, 2 * n))
-        work = np.empty(7 * n)
         z0 = np.ascontiguousarray(z0)
-        failed = lib.fem_dual_rk4(self.force.kernel, pointer(ffi, self._constants), n, steps,
-                                  h, scale, pointer(ffi, minv), pointer(ffi, z0),
-                                  pointer(ffi, states), pointer(ffi, rates), pointer(ffi, work))
+        failed = lib.fem_dual_rk4(self.force.kernel, constants, n, steps, h, self._scale, minv,
+                                  pointer(ffi, z0), pointer(ffi, states), pointer(ffi, rates),
+                                  work)
         if failed:  # (the loop stopped at the first value that is not finite)
             states[-1, 0] = np.nan
         return states, rates

@@ -33,7 +33,7 @@ from fem_dual.output import check_output_dir_on_root
 from fem_dual.sinks import (AcceptedSlab, Accumulator, PartialBatch, ProgressSink, Restart,
                             SlabBatch, XdmfSink)
 from fem_dual import faults, native
-from fem_dual.local_action import quiet_numpy
+from fem_dual.quiet import quiet_numpy
 from fem_dual.newton import NO_PROGRESS_ITS, NewtonSlabSolver
 from fem_dual.pointwise_newton import PointwiseLinearSolver, PointwiseNewtonSolver
 from fem_dual.problem import SlabProblem
@@ -594,8 +594,8 @@ def _estimates(vals: VertexValues, companion: VertexValues, algebraic: Optional[
     n = vals.x.shape[-1]
     local = np.concatenate([companion.x - vals.x, companion.v - vals.v], axis=-1)
     if algebraic is not None:  # the answer's own Newton error (the companion's cancels it)
-        local = local + algebraic
-    local = ESTIMATE_SAFETY * local
+        local += algebraic
+    local *= ESTIMATE_SAFETY
     if lost is not None:  # damped by the zero base: gone from the answer after the start
         local[:, 1:] += lost[:, None, :]
     glob = local if psi is None else local + psi
@@ -603,10 +603,10 @@ def _estimates(vals: VertexValues, companion: VertexValues, algebraic: Optional[
     # local errors at the round-off floor are not resolved: counted as such they would grow per
     # unit of time as slabs shrink and drive the lengths down to the minimum
     floor = ROUNDOFF_REL * scales
-    above = np.concatenate([np.maximum(np.abs(local[..., :n]) - floor[:, None, :1], 0.0),
-                            np.maximum(np.abs(local[..., n:]) - floor[:, None, 1:], 0.0)],
-                           axis=-1)
-    with np.errstate(invalid="ignore", over="ignore"):
+    above = np.abs(local)
+    above -= np.repeat(floor, n, axis=1)[:, None, :]  # (x's floor on x's columns, v's on v's)
+    np.maximum(above, 0.0, out=above)
+    with quiet_numpy():
         err_local = weights.norms(above, scales) / (np.asarray(dt) / T)
         err_global = weights.norms(glob, scales)
         err_output = None
@@ -656,17 +656,17 @@ def _judge(vals: VertexValues, companion: VertexValues, algebraic: Optional[np.n
     err_local = float(est.err_local[0])
     slab = est.slab(0, t0, dt)
     tol = weights.tol
-    what = tol.label
     if est.err_output is not None and est.err_output[0] > 1.0:
         return "retry", err_local, (f"the state between output vertices is estimated to be "
-                                    f"{est.err_output[0]:.3g} times the tolerance ({what}) off: "
-                                    "the vertices are too far apart for --t-eval"), slab
+                                    f"{est.err_output[0]:.3g} times the tolerance "
+                                    f"({tol.label}) off: the vertices are too far apart for "
+                                    "--t-eval"), slab
     if err_local > 1.0:
         return "retry", err_local, (f"estimated local error {np.abs(local).max():.3g} exceeds "
-                                    f"its share of the tolerance ({what})"), slab
+                                    f"its share of the tolerance ({tol.label})"), slab
     if est.err_global[0] > tol.refuse_factor:
         return "refuse", err_local, (f"estimated error {np.abs(glob).max():.3g} exceeds the "
-                                     f"tolerance ({what}) by a factor "
+                                     f"tolerance ({tol.label}) by a factor "
                                      f"{est.err_global[0]:.3g}"), slab
     return "accept", err_local, "", slab
 
@@ -697,8 +697,8 @@ def _volume_kept(comm: MPI.Comm, sim: Simulation, z: np.ndarray, t0: float, dt: 
     else:
         columns = [sim.tangent(z, unit, t0, dt, vals) for unit in np.eye(len(z))]
         J = None if comm.rank != 0 else np.column_stack([c[-1] for c in columns])
-    M = sim.scene.mass_matrix()
-    D = sim.scene.constants().get("D")
+    c = sim.problem.c  # (the scene's values, as the slab used them)
+    M, D = c["M"].value, c["D"].value if "D" in c else None
     defect = bcast(comm, volume_defect(J, M, D, dt) if J is not None else None)
     if defect <= VOLUME_TOL:
         return "accept", err, ""

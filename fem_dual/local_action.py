@@ -20,9 +20,8 @@ a few hundred, which one core factors in microseconds.
 """
 from __future__ import annotations
 
-from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Iterator, Optional, Tuple
+from typing import Optional, Tuple
 
 import basix
 import numpy as np
@@ -31,48 +30,18 @@ from dolfinx import fem
 from scipy.linalg import lapack
 
 from fem_dual.compat import CellPointEvaluator
+from fem_dual.quiet import _quiet, quiet_numpy  # noqa: F401 (quiet_numpy: re-exported)
 from fem_dual.problem import SlabProblem
 
 __all__ = ["LocalAction", "BandedLU", "quiet_numpy"]
 
 
-_QUIET = [0]  # how many quiet blocks are running (one np.errstate is enough)
 # The factors of Newton's last Jacobian serve the tangents at its last iterate when that step
 # moved the state by at most this much (relative): the Jacobians differ by as little, and the
 # tangents feed estimates (a factorisation less per slab: 85 us of 3 ms on curl3d T = 8, p = 6,
 # 8 cells); after a longer step the compiled Newton factors the Jacobian there itself, from
 # the band it assembles anyway
 FACTORS_KEPT_STEP = 1e-8
-
-
-@contextmanager
-def quiet_numpy() -> Iterator[None]:
-    """numpy's floating-point warnings off: a state that overflows gives inf or NaN, which the
-    Newton and the driver judge (a warning would be a second message). Inside another such
-    block the warnings are off already, and no np.errstate is entered again (5 us a call: a run
-    of the slab loop enters one for all its pointwise calls, fem_dual.driver.Simulation.run)."""
-    if _QUIET[0]:
-        yield
-        return
-    _QUIET[0] += 1
-    try:
-        with np.errstate(all="ignore"):
-            yield
-    finally:
-        _QUIET[0] -= 1
-
-
-def _quiet(method):
-    """Run `method` within quiet_numpy."""
-    import functools
-
-    @functools.wraps(method)
-    def wrapped(*args, **kwargs):
-        if _QUIET[0]:
-            return method(*args, **kwargs)
-        with quiet_numpy():
-            return method(*args, **kwargs)
-    return wrapped
 
 
 class BandedLU:
@@ -174,6 +143,8 @@ class LocalAction:
         if problem.comm.size != 1:
             raise ValueError("the pointwise assembly holds the whole slab mesh on one process")
         self.problem = p = problem
+        self._w = p.w.x.array  # the dual state's values (a view of its vector: stays valid)
+        self._pair_index: Optional[tuple] = None  # the Hessian's (row, column) of each pair
         msh = p.mesh.msh
         self.bs = bs = p.W.dofmap.index_map_bs
         n2 = 2 * p.n  # the dual fields with end values; a lifted scene's multipliers are free
@@ -355,12 +326,12 @@ class LocalAction:
     def set_state(self, x: np.ndarray) -> Optional[str]:
         """Put the free unknowns `x` into the problem's dual state (the Dirichlet values stay
         zero) and solve the implicit DtP map there; returns why that failed, or None."""
-        self.problem.w.x.array[self.free_global] = x
+        self._w[self.free_global] = x
         return self.sync()
 
     def state(self) -> np.ndarray:
         """The free unknowns of the problem's dual state."""
-        return self.problem.w.x.array[self.free_global].copy()
+        return self._w[self.free_global].copy()
 
     def sync(self) -> Optional[str]:
         """The implicit DtP map solved at the current dual state and constants; skipped when
@@ -370,7 +341,7 @@ class LocalAction:
             return None
         if not self._current(self._held):
             self.error = p.pointwise.solve(p.comm)
-            self._held = (p.version, p.w.x.array.copy())
+            self._held = (p.version, self._w.copy())
         return self.error
 
     def _current(self, kept: Optional[tuple]) -> bool:
@@ -379,7 +350,7 @@ class LocalAction:
         kept against)."""
         p = self.problem
         return (kept is not None and kept[0] == p.version
-                and np.array_equal(kept[1], p.w.x.array))
+                and np.array_equal(kept[1], self._w))
 
     # -- residual and Jacobian --------------------------------------------------------------
 
@@ -414,7 +385,7 @@ class LocalAction:
         cells, nq, bs = len(self.cells), self.nq, self.bs
         out = out.reshape(cells, nq, -1)
         R = self._residual(np.ascontiguousarray(out[..., :2 * bs]))
-        self._both_at = (self.problem.version, self.problem.w.x.array.copy(), R)
+        self._both_at = (self.problem.version, self._w.copy(), R)
         return R, self._band(out)
 
     @property
@@ -434,8 +405,8 @@ class LocalAction:
             self._both_at = None
             return None
         p = self.problem
-        p.w.x.array[self.free_global] = result.x
-        self._both_at = (p.version, p.w.x.array.copy(), result.F)
+        self._w[self.free_global] = result.x
+        self._both_at = (p.version, self._w.copy(), result.F)
         if p.pointwise is not None:  # X and G_x^-1 solved there by the C loop
             self._held, self.error = self._both_at[:2], None
         if result.at_x is not None:
@@ -502,7 +473,9 @@ class LocalAction:
         message = self.sync()
         if message:
             raise SolveError(message)
-        g = self._grad.into(self.cells, self._out_grad)
+        held = self._held_evaluation()  # (a solved slab's last evaluation holds the gradient)
+        g = (self._grad.into(self.cells, self._out_grad) if held is None
+             else np.ascontiguousarray(held[0][..., :2 * self.bs]))
         r = np.matmul(self._Tg, g.reshape(len(self.cells), self.nq * 2, self.bs))
         return self._sign * r[:, :2, :self._n2]
 
@@ -524,10 +497,13 @@ class LocalAction:
         """The full symmetric Hessian of the density at the points: (cells, q, 2 bs, 2 bs)."""
         m = 2 * self.bs
         H = np.zeros(out.shape[:2] + (m, m))
-        K = np.array([k for k, _ in self.pairs])
-        L = np.array([l for _, l in self.pairs])
-        H[..., K, L] = out[..., self._hess_cols]
-        H[..., L, K] = out[..., self._hess_cols]
+        if self._pair_index is None:
+            self._pair_index = (np.array([k for k, _ in self.pairs]),
+                                np.array([l for _, l in self.pairs]))
+        K, L = self._pair_index
+        entries = out[..., self._hess_cols]
+        H[..., K, L] = entries
+        H[..., L, K] = entries
         return H
 
     @_quiet
@@ -567,7 +543,7 @@ class LocalAction:
         current."""
         if not self._current(self._tangent_at):
             p = self.problem
-            key = (p.version, p.w.x.array.copy())
+            key = (p.version, self._w.copy())
             self._tangent_at = key + self._tangent_matrix()
         return self._tangent_at[2:]
 
@@ -602,7 +578,7 @@ class LocalAction:
         rhs[self.start_rows, :K] += initial
         K1 = K + 1
         dw = -lu.solve(rhs)  # (size, K + 1)
-        full = np.zeros((p.w.x.array.size, K1))
+        full = np.zeros((self._w.size, K1))
         full[self.free_global] = dw
         cell_dw = full.reshape(-1, bs, K1)[self._dofs]  # (cells, nd, bs, K + 1)
         dZ = np.matmul(self._T.reshape(cells, nq * 2, -1), cell_dw.reshape(cells, -1, bs * K1))

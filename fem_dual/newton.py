@@ -18,6 +18,7 @@ from petsc4py import PETSc
 
 from fem_dual.compat import destroy_petsc
 from fem_dual.errors import SolveError
+from fem_dual.quiet import quiet_numpy
 from fem_dual.problem import SlabProblem
 from fem_dual.solvers import CompiledSlab, SolverOptions, direct_solver
 from fem_dual.stepper import stalled
@@ -84,7 +85,7 @@ def residual_size(problem) -> float:
     p = problem
     size = max(float(np.abs(p.x0.value).max()), float(np.abs(p.c["M"].value @ p.v0.value).max()))
     if not p.scene.linear:
-        with np.errstate(all="ignore"):
+        with quiet_numpy():
             impulse = float(p.dt.value) * float(np.abs(p.scene.force_numpy(p.x0.value)).max())
         if math.isfinite(impulse):
             size = max(size, impulse)

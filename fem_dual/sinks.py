@@ -98,6 +98,9 @@ class SlabBatch:
                 np.maximum(g[..., n:].max(axis=-1), self.floor[:, 1:]))
 
 
+_TINY = np.finfo(float).tiny
+
+
 class Accumulator:
     """Vertex arrays of the whole run and their errors against the reference (rank 0 only)."""
 
@@ -120,14 +123,14 @@ class Accumulator:
         self.estimates: List[Dict[str, float]] = []
         self.est_rows: List[np.ndarray] = []  # the estimate at every output time
         self.err_rows: List[np.ndarray] = []  # the reference error at every output time
+        self._masks: Dict[tuple, np.ndarray] = {}
 
     def add(self, slab: AcceptedSlab) -> None:
         self.add_batch(SlabBatch.of(slab))
 
     def add_batch(self, batch: SlabBatch) -> None:
         vals = batch.values
-        keep = np.ones(vals.hamiltonian.shape, dtype=bool)  # each junction once: a slab's end
-        keep[:, 0] = batch.first + np.arange(len(batch)) == 0
+        keep = self._kept(vals.hamiltonian.shape, batch.first == 0)
         t = (batch.t0[:, None] + batch.dt[:, None] * vals.s)[keep]
         x, v = vals.x[keep], vals.v[keep]
         if self.flow is not None:
@@ -147,9 +150,21 @@ class Accumulator:
                                                        batch.global_weighted)]
         h = vals.hamiltonian
         low, high = h.min(axis=1), h.max(axis=1)
-        scale = np.maximum(np.abs(h).max(axis=1), np.finfo(float).tiny)
+        scale = np.maximum(np.maximum(high, -low), _TINY)  # max |h|
         self.ham += [{"min": float(a), "max": float(b), "drift": float(c)}
                      for a, b, c in zip(low, high, (high - low) / scale)]
+
+    def _kept(self, shape: Tuple[int, int], first: bool) -> np.ndarray:
+        """Which vertices (slabs, vertices) of a batch the run's arrays take: each junction
+        once, as a slab's end (the run's start as the first slab's start); found once per
+        shape."""
+        key = (shape, first)
+        if key not in self._masks:
+            keep = np.ones(shape, dtype=bool)
+            keep[:, 0] = False
+            keep[0, 0] = first
+            self._masks[key] = keep
+        return self._masks[key]
 
     def _compare(self, t: np.ndarray, x: np.ndarray, v: np.ndarray) -> None:
         """Errors against the reference while it stays finite: an exponentially growing

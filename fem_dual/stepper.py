@@ -28,6 +28,8 @@ from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
+from fem_dual.quiet import quiet_numpy
+
 __all__ = ["ErrorWeights", "step_factor", "step_factors", "SlabEstimate", "Tolerance", "REFUSE_RELATIVE",
            "VOLUME_TOL", "volume_defect",
            "ACCEPT_GLOBAL", "ESTIMATE_SAFETY", "ROUNDOFF_REL", "initial_fraction",
@@ -118,9 +120,14 @@ class ErrorWeights:
     def running(self, x: np.ndarray, v: np.ndarray) -> np.ndarray:
         """(slabs, 2): `with_motion` of each of consecutive slabs (x, v: (slabs, vertices, n)),
         each recorded before the next."""
+        if len(x) == 1:  # one slab (the slab loop's): in floats, where they are finite
+            px, pv = float(np.abs(x).max(initial=0.0)), float(np.abs(v).max(initial=0.0))
+            if math.isfinite(px) and math.isfinite(pv):
+                sx, sv = max(self.scale_x, px), max(self.scale_v, pv)
+                return np.array([[sx or sv, sv or sx]])
         peaks = np.column_stack([_peaks(x), _peaks(v)])
         peaks[0] = np.maximum(peaks[0], (self.scale_x, self.scale_v))
-        seen = np.maximum.accumulate(peaks, axis=0) if len(peaks) > 1 else peaks
+        seen = np.maximum.accumulate(peaks, axis=0)
         # a part that has not moved at all takes the other part's scale
         return np.where(seen > 0, seen, seen[:, ::-1])
 
@@ -132,6 +139,8 @@ class ErrorWeights:
         """`norm` of many slabs: e (slabs, vertices, 2n), scales (slabs, 2)."""
         size = np.abs(e.reshape(len(e), -1, 2, self.n)).max(axis=(1, 3), initial=0.0)
         weight = self.tol.atol + self.tol.rtol * scales
+        if weight.min(initial=1.0) > 0:  # (the usual case: a few array calls fewer)
+            return (size / weight).max(axis=1)
         ratio = np.divide(size, weight, out=np.zeros_like(size), where=weight > 0)
         ratio[(weight <= 0) & (size > 0)] = np.inf  # an error where nothing may err
         return ratio.max(axis=1)
@@ -222,7 +231,7 @@ def volume_defect(jacobian: np.ndarray, M: np.ndarray, D: Optional[np.ndarray],
     """|det(jacobian) - exp(-tr(M^-1 D) dt)|: how far a slab map's tangent (2n, 2n) is from
     preserving phase-space volume as the flow of M v' + D v = F(x) does (VOLUME_TOL)."""
     exact = 1.0 if D is None else math.exp(-float(np.trace(np.linalg.solve(M, D))) * dt)
-    with np.errstate(all="ignore"):
+    with quiet_numpy():
         defect = abs(float(np.linalg.det(jacobian)) - exact)
     return defect if math.isfinite(defect) else math.inf
 
