@@ -751,7 +751,10 @@ def _start_rate(scene, x0: np.ndarray, v0: np.ndarray) -> float:
     if scene.linear:
         a0 = (scene.first_order_matrix() @ np.concatenate([x0, v0]))[scene.n:]
     else:
-        a0 = np.linalg.solve(scene.mass_matrix(), scene.force_numpy(x0))
+        M, F = scene.mass_matrix(), np.asarray(scene.force_numpy(x0), dtype=float)
+        d = M.diagonal()
+        diagonal = not np.count_nonzero(M - np.diag(d))  # (the usual mass m I: no LAPACK)
+        a0 = F / d if diagonal else np.linalg.solve(M, F)
     return motion_rate(x0, v0, a0)
 
 

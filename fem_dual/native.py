@@ -785,7 +785,7 @@ class PackedExpression:
             bs = V.dofmap.index_map_bs
             dofs = V.dofmap.list.array.reshape(len(V.dofmap.list.offsets) - 1, -1)[self.cells]
             index = (dofs[:, :, None] * bs + np.arange(bs)).reshape(len(self.cells), -1)
-            columns.append((f, index))
+            columns.append((f, f.x.array, index))  # (a view of f's vector: stays valid)
             self._slots[id(f)] = offset + np.arange(index.shape[1])
             offset += index.shape[1]
         self._columns = columns
@@ -799,14 +799,14 @@ class PackedExpression:
     def pack(self) -> np.ndarray:
         """The rows of the coefficients' current values."""
         start = 0
-        for f, index in self._columns:
-            self.packed[:, start:start + index.shape[1]] = f.x.array[index]
+        for _, values, index in self._columns:
+            self.packed[:, start:start + index.shape[1]] = values[index]
             start += index.shape[1]
         return self.packed
 
     def index(self, f) -> np.ndarray:
         """(cells, columns): where in `f.x.array` each of its columns of a row is packed from."""
-        return next(index for g, index in self._columns if g is f)
+        return next(index for g, _, index in self._columns if g is f)
 
     def slot(self, f) -> np.ndarray:
         """The columns of a row that hold the coefficient `f`'s cell values."""
