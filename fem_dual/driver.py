@@ -606,9 +606,10 @@ def _estimates(vals: VertexValues, companion: VertexValues, algebraic: Optional[
     above = np.abs(local)
     above -= np.repeat(floor, n, axis=1)[:, None, :]  # (x's floor on x's columns, v's on v's)
     np.maximum(above, 0.0, out=above)
-    with quiet_numpy():
-        err_local = weights.norms(above, scales) / (np.asarray(dt) / T)
-        err_global = weights.norms(glob, scales)
+    with quiet_numpy():  # (the local and the global errors weighted in one pass)
+        count = len(scales)
+        both = weights.norms(np.concatenate([above, glob]), np.concatenate([scales, scales]))
+        err_local, err_global = both[:count] / (np.asarray(dt) / T), both[count:]
         err_output = None
         if output is not None:
             scene, order = output
@@ -1098,7 +1099,8 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool,
                 raise SolveError(suspicious)
             t2 = time.perf_counter()
             algebraic = sim.algebraic_error(z, vals)
-            psi = sim.tangent(z, d, t0, dt, vals)
+            # (no error carried in: none to propagate, the estimate is the local one)
+            psi = sim.tangent(z, d, t0, dt, vals) if d.any() else None
             lost = sim.unresolved(z, dt)
             companion = sim.companion.solve_slab(z, t0, dt, start=sim)
             timings["estimate_s"] += time.perf_counter() - t2

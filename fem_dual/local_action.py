@@ -89,19 +89,26 @@ class BandedLU:
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         if self.cholesky is not None and self._native is not None:
-            ffi, lib = self._native
-            x = np.array(rhs, dtype=float, order="C")  # (N,) or (N, columns)
-            N = self.cholesky.shape[1]
-            lib.fem_dual_band_solve(N, self.kd, ffi.from_buffer("double[]", self.cholesky.T),
-                                    self.kd + 1, x.size // N if N else 0,
-                                    ffi.from_buffer("double[]", x))
-            return x
+            return self.solve_in_place(np.array(rhs, dtype=float, order="C"))
         if self.cholesky is not None:
             x, info = lapack.dpbtrs(self.cholesky, rhs)
         else:
             x, info = lapack.dgbtrs(self.lu, self.kd, self.kd, rhs, self.piv)
         if info != 0:
             raise ValueError(f"banded solve: illegal argument {-info}")
+        return x
+
+    def solve_in_place(self, x: np.ndarray) -> np.ndarray:
+        """The solution in x, a C-contiguous float array (N,) or (N, columns) of right-hand
+        sides (no copy where the compiled solve runs); returns x."""
+        if self.cholesky is None or self._native is None:
+            x[...] = self.solve(x)
+            return x
+        ffi, lib = self._native
+        N = self.cholesky.shape[1]
+        lib.fem_dual_band_solve(N, self.kd, ffi.from_buffer("double[]", self.cholesky.T),
+                                self.kd + 1, x.size // N if N else 0,
+                                ffi.from_buffer("double[]", x))
         return x
 
 
@@ -249,6 +256,7 @@ class LocalAction:
         self.start_rows = index[np.isclose(s, 0.0)].ravel()  # the initial terms' rows
 
         rows = index[dofs]  # (cells, nd, bs): the row of each cell unknown, -1 if fixed
+        self._cell_rows = np.where(rows >= 0, rows, N)  # (fixed: row N, kept zero)
         self._r_rows = rows.ravel()
         self._r_keep = np.flatnonzero(self._r_rows >= 0)
         self._r_rows = self._r_rows[self._r_keep]
@@ -296,7 +304,6 @@ class LocalAction:
         self._vertex_mean = np.zeros((len(counts), 2 * cell_count))
         self._vertex_mean[vertex, np.arange(2 * cell_count)] = 1.0 / counts[vertex]
         self._T = T  # (cells, q, 2, nd)
-        self._dofs = dofs
 
         self._held: Optional[Tuple[int, np.ndarray]] = None
         self.error: Optional[str] = None  # why the implicit DtP map failed at the state
@@ -565,22 +572,21 @@ class LocalAction:
             out, R = held
             lu = self._held_factors() or self.factor(self._band(out))
         hessian = self._hessian(out)
-        rhs = np.zeros((self.size, K + 1))  # d R / d z0, then R (the Newton step's)
-        rhs[:, K] = R
+        # -d R / d z0, then -R (the Newton step's), and a zero row for the fixed unknowns
+        rhs = np.zeros((self.size + 1, K + 1))
+        rhs[:-1, K] = -R
         dg_base = None
         if p.base == "start" and self._base_derivative is not None:  # d grad / d zbar
             dg_base = self._base_derivative(self.cells).reshape(cells, nq, 2 * bs, K)
             r = np.matmul(self._Tg, dg_base.reshape(cells, nq * 2, bs * K))  # (cells, nd, bs K)
             rows = r.reshape(-1, K)[self._r_keep]
             for k in range(K):
-                rhs[:, k] = np.bincount(self._r_rows, rows[:, k], minlength=self.size)
+                rhs[:-1, k] = -np.bincount(self._r_rows, rows[:, k], minlength=self.size)
         Minv, initial = self._mass_derived()
-        rhs[self.start_rows, :K] += initial
+        rhs[self.start_rows, :K] -= initial
         K1 = K + 1
-        dw = -lu.solve(rhs)  # (size, K + 1)
-        full = np.zeros((self._w.size, K1))
-        full[self.free_global] = dw
-        cell_dw = full.reshape(-1, bs, K1)[self._dofs]  # (cells, nd, bs, K + 1)
+        lu.solve_in_place(rhs[:-1])  # dw: (size, K + 1)
+        cell_dw = rhs[self._cell_rows]  # (cells, nd, bs, K + 1)
         dZ = np.matmul(self._T.reshape(cells, nq * 2, -1), cell_dw.reshape(cells, -1, bs * K1))
         dg = np.matmul(hessian, dZ.reshape(cells, nq, 2 * bs, K1))
         if dg_base is not None:

@@ -90,12 +90,11 @@ class SlabBatch:
                             estimate, tuple(int(a) for a in self.schedule[j]),
                             tuple(self.scales[j]))
 
-    def reported(self) -> Tuple[np.ndarray, np.ndarray]:
-        """SlabEstimate.reported of every slab: (slabs, vertices) each."""
-        n = self.glob.shape[-1] // 2
-        g = np.abs(self.glob)
-        return (np.maximum(g[..., :n].max(axis=-1), self.floor[:, :1]),
-                np.maximum(g[..., n:].max(axis=-1), self.floor[:, 1:]))
+    def reported(self) -> np.ndarray:
+        """SlabEstimate.reported of every slab, (slabs, vertices, 2): x's, then v's."""
+        slabs, vertices, n2 = self.glob.shape
+        g = np.abs(self.glob).reshape(slabs, vertices, 2, n2 // 2).max(axis=-1)
+        return np.maximum(g, self.floor[:, None, :])
 
 
 _TINY = np.finfo(float).tiny
@@ -136,13 +135,14 @@ class Accumulator:
         if self.flow is not None:
             self._compare(t, x, v)
         self.t.append(t), self.x.append(x), self.v.append(v)
-        est_x, est_v = batch.reported()
-        self.est_rows.append(np.maximum(est_x, est_v)[keep])
-        self.est_x, self.est_v = max(self.est_x, est_x[keep].max()), max(self.est_v,
-                                                                         est_v[keep].max())
-        self.est_final = (float(est_x[-1, -1]), float(est_v[-1, -1]))
+        est = batch.reported()  # (slabs, vertices, 2): x's and v's
+        kept = est[keep]
+        self.est_rows.append(kept.max(axis=1))
+        peak_x, peak_v = kept.max(axis=0)
+        self.est_x, self.est_v = max(self.est_x, peak_x), max(self.est_v, peak_v)
+        self.est_final = (float(est[-1, -1, 0]), float(est[-1, -1, 1]))
         local = np.abs(batch.local).reshape(len(batch), -1).max(axis=1, initial=0.0)
-        glob = np.maximum(est_x.max(axis=1), est_v.max(axis=1))
+        glob = est.reshape(len(batch), -1).max(axis=1)
         self.estimates += [{"t0": float(a), "dt": float(b), "local": float(c), "global": float(d),
                             "local_weighted": float(e), "global_weighted": float(f)}
                            for a, b, c, d, e, f in zip(batch.t0, batch.dt, local, glob,

@@ -32,7 +32,7 @@ class VertexValues:
     def finite(self) -> bool:
         arrays = [self.x, self.v, self.hamiltonian] + [a for a in (self.xi, self.eta)
                                                        if a is not None]
-        return all(np.isfinite(a).all() for a in arrays)
+        return bool(np.isfinite(np.concatenate([a.ravel() for a in arrays])).all())
 
 
 def times_last(a: np.ndarray, matrix: np.ndarray) -> np.ndarray:
