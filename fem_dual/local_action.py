@@ -304,6 +304,7 @@ class LocalAction:
         self._vertex_mean = np.zeros((len(counts), 2 * cell_count))
         self._vertex_mean[vertex, np.arange(2 * cell_count)] = 1.0 / counts[vertex]
         self._T = T  # (cells, q, 2, nd)
+        self._native_tangents = self._tangents_loop()
 
         self._held: Optional[Tuple[int, np.ndarray]] = None
         self.error: Optional[str] = None  # why the implicit DtP map failed at the state
@@ -447,6 +448,24 @@ class LocalAction:
         self._native_band = (ffi, lib, pointers, len(products), arrays[5].shape[2],
                              len(self._j_flat))
 
+    def _tangents_loop(self) -> Optional[tuple]:
+        """(ffi, lib, what fem_dual.native's `tangents` reads as C pointers) where the compiled
+        loops are available, else None (the numpy branch of _tangent_matrix)."""
+        from fem_dual import native
+
+        built = native.library()
+        if built is None:
+            return None
+        ffi, _ = built
+        cells = len(self.cells)
+        arrays = [np.ascontiguousarray(a, dtype=dtype) for a, dtype in (
+            (self._T, float), (self._Tg, float), (self._hess_cols, np.int64),
+            ([k for k, _ in self.pairs], np.int64), ([l for _, l in self.pairs], np.int64),
+            (self._cell_rows, np.int64), (self._sign.reshape(cells, 2), float))]
+        pointers = [native.pointer(ffi, a, "int64_t *" if a.dtype == np.int64 else "double *")
+                    for a in arrays]  # (each keeps its array alive)
+        return built + (tuple(pointers),)
+
     def _band(self, out: np.ndarray) -> np.ndarray:
         """The Jacobian's band (dgbtrf's storage) from an evaluation (cells, q, columns)."""
         if self._native_band is not None and out.flags.c_contiguous:
@@ -571,7 +590,6 @@ class LocalAction:
         else:
             out, R = held
             lu = self._held_factors() or self.factor(self._band(out))
-        hessian = self._hessian(out)
         # -d R / d z0, then -R (the Newton step's), and a zero row for the fixed unknowns
         rhs = np.zeros((self.size + 1, K + 1))
         rhs[:-1, K] = -R
@@ -586,16 +604,39 @@ class LocalAction:
         rhs[self.start_rows, :K] -= initial
         K1 = K + 1
         lu.solve_in_place(rhs[:-1])  # dw: (size, K + 1)
-        cell_dw = rhs[self._cell_rows]  # (cells, nd, bs, K + 1)
-        dZ = np.matmul(self._T.reshape(cells, nq * 2, -1), cell_dw.reshape(cells, -1, bs * K1))
-        dg = np.matmul(hessian, dZ.reshape(cells, nq, 2 * bs, K1))
-        if dg_base is not None:
-            dg[..., :K] += dg_base
-        dm = np.matmul(self._Tg, dg.reshape(cells, nq * 2, bs * K1)).reshape(cells, -1, bs, K1)
-        dm = self._sign[..., None] * dm[:, :2, :K]  # (cells, 2, 2n, K + 1): x then M v
-        dm[:, :, n:] = np.matmul(Minv, dm[:, :, n:])
+        if self._native_tangents is not None and dg_base is None and out.flags.c_contiguous:
+            dm = self._compiled_tangents(out, rhs, Minv)
+        else:
+            cell_dw = rhs[self._cell_rows]  # (cells, nd, bs, K + 1)
+            dZ = np.matmul(self._T.reshape(cells, nq * 2, -1),
+                           cell_dw.reshape(cells, -1, bs * K1))
+            dg = np.matmul(self._hessian(out), dZ.reshape(cells, nq, 2 * bs, K1))
+            if dg_base is not None:
+                dg[..., :K] += dg_base
+            dm = np.matmul(self._Tg, dg.reshape(cells, nq * 2, bs * K1)).reshape(cells, -1, bs,
+                                                                                K1)
+            dm = self._sign[..., None] * dm[:, :2, :K]  # (cells, 2, 2n, K + 1): x then M v
+            dm[:, :, n:] = np.matmul(Minv, dm[:, :, n:])
         vertices = (self._vertex_mean @ dm.reshape(cells * 2, K * K1)).reshape(-1, K, K1)
         return lu, np.ascontiguousarray(vertices[..., :K]), vertices[..., K].copy()
+
+    def _compiled_tangents(self, out: np.ndarray, dw: np.ndarray,
+                           Minv: np.ndarray) -> np.ndarray:
+        """The numpy branch of _tangent_matrix after its solve in compiled code
+        (fem_dual.native's `tangents`): dm (cells, 2, 2n, 2n + 1) from the solved unknowns dw
+        (size + 1, 2n + 1; the last row zero) and the evaluation out (cells, q, columns)."""
+        ffi, lib, fixed = self._native_tangents
+        p, cells = self.problem, len(self.cells)
+        n, K1 = p.n, dw.shape[1]
+        dm = np.empty((cells, 2, 2 * n, K1))
+        Minv = np.ascontiguousarray(Minv, dtype=float)
+        T, Tg, cols, pk, pl, rows, sign = fixed
+        lib.fem_dual_tangents(cells, self.nq, self.nd, self.bs, n, K1, T, Tg,
+                              ffi.from_buffer("double[]", out), out.shape[2], len(self.pairs),
+                              cols, pk, pl, ffi.from_buffer("double[]", dw), rows, sign,
+                              ffi.from_buffer("double[]", Minv), ffi.from_buffer("double[]", dm),
+                              ffi.from_buffer("double[]", np.empty(4 * self.bs * K1)))
+        return dm
 
     def _mass_derived(self) -> Tuple[np.ndarray, np.ndarray]:
         """(M^-1, d/dz0 of the initial terms' rows: (start rows, 2n)), kept while M is: the
