@@ -724,7 +724,8 @@ def _null_where_not_finite(value):
 def _compiled_loops(sim: "Simulation") -> List[str]:
     """Which inner loops of the run ran in compiled code (fem_dual.native): "rk4" (the rk4
     base), "band" (the pointwise Jacobian's band), "newton" (the slab's Newton iterations),
-    "dtp" (the implicit DtP map's Newton, within those or alone)."""
+    "dtp" (the implicit DtP map's Newton, within those or alone), "tangents" (a solved slab's
+    exact tangents after their solve; not with the base state "start")."""
     loops = []
     if getattr(getattr(sim.problem, "predictor", None), "compiled", False):
         loops.append("rk4")
@@ -737,6 +738,9 @@ def _compiled_loops(sim: "Simulation") -> List[str]:
     pointwise = getattr(sim.problem, "pointwise", None)
     if pointwise is not None and (newton or pointwise.compiled):  # (within the C Newton)
         loops.append("dtp")
+    if (getattr(local, "_native_tangents", None) is not None and sim.scene.linear is False
+            and sim.base != "start"):
+        loops.append("tangents")
     return loops
 
 
