@@ -124,7 +124,7 @@ class ErrorWeights:
             px, pv = float(np.abs(x).max(initial=0.0)), float(np.abs(v).max(initial=0.0))
             if math.isfinite(px) and math.isfinite(pv):
                 sx, sv = max(self.scale_x, px), max(self.scale_v, pv)
-                return np.array([[sx or sv, sv or sx]])
+                return np.array([[sx if sx > 0 else sv, sv if sv > 0 else sx]])
         peaks = np.column_stack([_peaks(x), _peaks(v)])
         peaks[0] = np.maximum(peaks[0], (self.scale_x, self.scale_v))
         seen = np.maximum.accumulate(peaks, axis=0)

@@ -61,6 +61,18 @@ def test_user_force_parameters_are_validated():
         Swirl.from_params({"beta": "0"})
 
 
+@pytest.mark.parametrize("name", ["M", "Binv", "D"])
+def test_the_forms_own_constant_names_are_not_parameters(name, capsys):
+    """A parameter named as a constant the forms read (D: the damping matrix) is bad input,
+    exit 2 naming it; D ended in a UFL traceback (session 18's hostile test)."""
+    from fem_dual.cli import main
+
+    assert main(["run", "force", "--F", f"-{name}*x", "--param", f"{name}=2", "--x0", "1",
+                 "--slabs", "2"]) == 2
+    err = capsys.readouterr().err
+    assert f"{name!r}" in err and "reserved" in err and "Traceback" not in err
+
+
 def test_parameters_that_derivatives_remove_are_not_a_wrong_answer():
     """The worst case of the constant slots (session 16 hostile test): on the old code this run
     ended ok with an estimate of 1.0e-8 and was 0.048 off."""

@@ -48,9 +48,9 @@ class ExpressionForce(ForceScene):
         own = {k: parse_number(k, params.pop(k)) for k in ("m", "alpha", "beta") if k in params}
         values = {k: parse_number(k, v) for k, v in params.items()}
         for name in values:
-            if name in ("M", "Binv"):  # the constants of the forms themselves
-                raise InputError(f"parameter name {name!r} is reserved (the mass matrix and "
-                                 "H's inverse weight); use another name")
+            if name in ("M", "Binv", "D"):  # the constants of the forms themselves
+                raise InputError(f"parameter name {name!r} is reserved (the mass matrix, H's "
+                                 "inverse weight and the damping matrix); use another name")
         from fem_dual.expression import check_parameter_names, parse_force
 
         expression = parse_force(str(text), values)
