@@ -8,7 +8,8 @@ default `~/.cache/fem-dual`), calls that kernel inside its loops. Where no compi
 
 What it holds:
 - `rk4`: classical Runge-Kutta in Nystrom form, the loop of
-  fem_dual.base_state.FlowPredictor (the same stages and sums), with the force from its kernel.
+  fem_dual.base_state.FlowPredictor (the same stages and sums), with the force from its kernel,
+  and (`hermite`) its cubic Hermite read at the slab's nodes.
 - `band`: the Jacobian's band of fem_dual.local_action.LocalAction from the Hessian of the
   density at the quadrature points: the products of each Hessian group with its basis table and
   their scatter into the band, in one pass (numpy: a gather, a matrix product per group, a
@@ -630,6 +631,29 @@ void fem_dual_tangents(int cells, int nq, int nd, int bs, int n, int k1, const d
     }
 }
 
+/* The cubic Hermite of an rk4 run at m times (FlowPredictor.along): out[i] = sum_j w[i, j]
+   [states; h rates][rows[i, j]], j < 4, for states and rates (steps + 1, n2) each. */
+void fem_dual_hermite(int m, int n2, int steps, double h, const int64_t *rows, const double *w,
+                      const double *states, const double *rates, double *out)
+{
+    int i, j, c;
+    for (i = 0; i < m; ++i) {
+        double *o = out + (int64_t)i * n2;
+        for (c = 0; c < n2; ++c) o[c] = 0.0;
+        for (j = 0; j < 4; ++j) {
+            const int64_t r = rows[i * 4 + j];
+            const double wt = w[i * 4 + j];
+            if (r <= steps) {
+                const double *s = states + r * n2;
+                for (c = 0; c < n2; ++c) o[c] += wt * s[c];
+            } else {
+                const double *s = rates + (r - steps - 1) * n2;
+                for (c = 0; c < n2; ++c) o[c] += wt * (h * s[c]);
+            }
+        }
+    }
+}
+
 int fem_dual_rk4(uintptr_t kernel, const double *c, int n, int steps, double h, double scale,
                  const double *minv, const double *z0, double *states, double *rates,
                  double *work)
@@ -675,7 +699,7 @@ int fem_dual_rk4(uintptr_t kernel, const double *c, int n, int steps, double h, 
 
 _SYMBOLS = ("fem_dual_rk4", "fem_dual_band", "fem_dual_dtp_newton",
             "fem_dual_slab_newton", "fem_dual_band_cholesky", "fem_dual_band_solve",
-            "fem_dual_tangents")
+            "fem_dual_tangents", "fem_dual_hermite")
 
 
 def _declarations(source: str, names) -> str:
