@@ -151,7 +151,6 @@ class LocalAction:
             raise ValueError("the pointwise assembly holds the whole slab mesh on one process")
         self.problem = p = problem
         self._w = p.w.x.array  # the dual state's values (a view of its vector: stays valid)
-        self._pair_index: Optional[tuple] = None  # the Hessian's (row, column) of each pair
         msh = p.mesh.msh
         self.bs = bs = p.W.dofmap.index_map_bs
         n2 = 2 * p.n  # the dual fields with end values; a lifted scene's multipliers are free
@@ -178,6 +177,8 @@ class LocalAction:
         pairs = self._pattern(upper)
         self._hess_cols = 2 * bs + np.array([upper.index(kl) for kl in pairs], dtype=np.int64)
         self._points, self._flat_grad, self.pairs = points, flat_grad, pairs
+        self._pair_index = (np.array([k for k, _ in pairs], dtype=np.int64),  # the Hessian's
+                            np.array([l for _, l in pairs], dtype=np.int64))  # row, column
         # d grad / d zbar for the exact tangents, compiled now (with the rest: under MPI every
         # rank holds the slab, and rank 0 compiles first, see fem_dual.driver.Simulation)
         self._base_derivative: Optional[CellPointEvaluator] = None
@@ -460,7 +461,7 @@ class LocalAction:
         cells = len(self.cells)
         arrays = [np.ascontiguousarray(a, dtype=dtype) for a, dtype in (
             (self._T, float), (self._Tg, float), (self._hess_cols, np.int64),
-            ([k for k, _ in self.pairs], np.int64), ([l for _, l in self.pairs], np.int64),
+            *((index, np.int64) for index in self._pair_index),
             (self._cell_rows, np.int64), (self._sign.reshape(cells, 2), float))]
         pointers = [native.pointer(ffi, a, "int64_t *" if a.dtype == np.int64 else "double *")
                     for a in arrays]  # (each keeps its array alive)
@@ -523,9 +524,6 @@ class LocalAction:
         """The full symmetric Hessian of the density at the points: (cells, q, 2 bs, 2 bs)."""
         m = 2 * self.bs
         H = np.zeros(out.shape[:2] + (m, m))
-        if self._pair_index is None:
-            self._pair_index = (np.array([k for k, _ in self.pairs]),
-                                np.array([l for _, l in self.pairs]))
         K, L = self._pair_index
         entries = out[..., self._hess_cols]
         H[..., K, L] = entries
