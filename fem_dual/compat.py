@@ -114,8 +114,7 @@ class CellPointEvaluator:
         checks: see `into`)."""
         cells = np.asarray(cells, dtype=np.int32)
         points = self._points.shape[0]
-        values = np.zeros((len(cells), points * self._width))
-        self._expr._cpp_object.eval(cells, values)
+        values = self.into(cells, np.zeros((len(cells), points * self._width)))
         return values.reshape(len(cells), points, self._width)
 
     @property
