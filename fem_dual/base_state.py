@@ -147,6 +147,9 @@ class FlowPredictor:
             # what every run reads, as C pointers (each keeps its array alive)
             self._fixed = (pointer(ffi, self._constants), pointer(ffi, self._minv),
                            pointer(ffi, np.empty(7 * self.n)))
+            # the run's step ends, reused by every run (the kept run is dropped before the next)
+            ends = np.zeros((2, self.steps + 1, 2 * self.n))
+            self._ends = (ends[0], ends[1], pointer(ffi, ends[0]), pointer(ffi, ends[1]))
         self.forget()
 
     def forget(self) -> None:
@@ -180,14 +183,11 @@ class FlowPredictor:
         from fem_dual.native import pointer
 
         ffi, lib = self._native
-        n, steps = self.n, self.steps
         constants, minv, work = self._fixed
-        states = np.zeros((steps + 1, 2 * n))
-        rates = np.zeros((steps + 1, 2 * n))
+        states, rates, to_states, to_rates = self._ends
         z0 = np.ascontiguousarray(z0)
-        failed = lib.fem_dual_rk4(self.force.kernel, constants, n, steps, h, self._scale, minv,
-                                  pointer(ffi, z0), pointer(ffi, states), pointer(ffi, rates),
-                                  work)
+        failed = lib.fem_dual_rk4(self.force.kernel, constants, self.n, self.steps, h,
+                                  self._scale, minv, pointer(ffi, z0), to_states, to_rates, work)
         if failed:  # (the loop stopped at the first value that is not finite)
             states[-1, 0] = np.nan
         return states, rates, bool(failed)
@@ -242,9 +242,9 @@ class FlowPredictor:
         end = float(end)
         if not (self._last[0] is not None and self._last[1] == end
                 and np.array_equal(self._last[0], z0)):
+            self.forget()  # (a run that fails leaves no kept run: its step ends are reused)
             self._last = (z0.copy(), end) + ((np.array([z0]), np.zeros((1, len(z0))))
                                               if end <= 0 else self._run(z0, end))
-            self._reads = {}
         _, _, states, rates = self._last
         key = fractions.tobytes()
         if key in self._reads:  # the same slab read again (a restore after a probe)
@@ -253,32 +253,38 @@ class FlowPredictor:
             return np.repeat(states[:1], len(fractions), axis=0)
         if key not in self._weights:
             self._weights[key] = self._hermite(np.asarray(fractions, dtype=float))
-        rows, weights = self._weights[key]
+        rows, weights, to_rows, to_weights = self._weights[key]
         h = end / self.steps
-        if self.force is not None:  # (the same sums in compiled code)
+        if self.force is not None:  # (the same sums in compiled code, of the run's step ends)
             from fem_dual.native import pointer
 
             ffi, lib = self._native
             out = np.empty((len(rows), states.shape[1]))
-            lib.fem_dual_hermite(len(rows), states.shape[1], self.steps, h,
-                                 pointer(ffi, rows, "int64_t *"), pointer(ffi, weights),
-                                 pointer(ffi, states), pointer(ffi, rates), pointer(ffi, out))
+            lib.fem_dual_hermite(len(rows), states.shape[1], self.steps, h, to_rows, to_weights,
+                                 self._ends[2], self._ends[3], pointer(ffi, out))
         else:
             out = np.einsum("mj,mjc->mc", weights, np.concatenate([states, h * rates])[rows])
         self._reads[key] = out
         return out
 
-    def _hermite(self, fractions: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-        """(rows, weights), each (len(fractions), 4): the cubic Hermite of the step ends at the
-        fractions of the slab, as weights of rows of [states; h rates]."""
+    def _hermite(self, fractions: np.ndarray) -> tuple:
+        """(rows, weights, their C pointers or None), rows and weights (len(fractions), 4): the
+        cubic Hermite of the step ends at the fractions of the slab, as weights of rows of
+        [states; h rates]."""
         steps = self.steps
         u = np.clip(fractions * steps, 0.0, steps)
         k = np.minimum(u.astype(int), steps - 1)  # the step of each time
         s = u - k
         weights = np.stack([(1 + 2 * s) * (1 - s) ** 2, s * (1 - s) ** 2,
                             s ** 2 * (3 - 2 * s), s ** 2 * (s - 1)], axis=1)
-        rows = np.stack([k, steps + 1 + k, k + 1, steps + 2 + k], axis=1)
-        return rows.astype(np.int64), np.ascontiguousarray(weights)
+        rows = np.stack([k, steps + 1 + k, k + 1, steps + 2 + k], axis=1).astype(np.int64)
+        weights = np.ascontiguousarray(weights)
+        if self.force is None:
+            return rows, weights, None, None
+        from fem_dual.native import pointer
+
+        ffi = self._native[0]  # (C pointers for the compiled read, each keeps its array alive)
+        return rows, weights, pointer(ffi, rows, "int64_t *"), pointer(ffi, weights)
 
 
 def predictor(scene, base: str, steps: int):
