@@ -77,14 +77,16 @@ class BandedLU:
         self.singular = info != 0
 
     @classmethod
-    def of_cholesky(cls, cholesky: np.ndarray, kd: int) -> "BandedLU":
-        """The Cholesky factor computed elsewhere (fem_dual.native's Newton): upper storage,
-        (kd + 1, N), Fortran order."""
-        from fem_dual import native
+    def of_cholesky(cls, cholesky: np.ndarray, kd: int, built=None) -> "BandedLU":
+        """The Cholesky factor computed elsewhere (fem_dual.native's Newton, `built` its
+        (ffi, lib)): upper storage, (kd + 1, N), Fortran order."""
+        if built is None:
+            from fem_dual import native
 
+            built = native.library()
         lu = cls.__new__(cls)
         lu.kd, lu.cholesky, lu.piv, lu.singular = kd, cholesky, None, False
-        lu._native = native.library()
+        lu._native = built
         return lu
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
@@ -297,6 +299,7 @@ class LocalAction:
         # cell's orientation
         left_first = (ends[:, 0] < ends[:, 1])[:, None]
         self._sign = np.where(left_first, [1.0, -1.0], [-1.0, 1.0])[:, :, None]
+        self._Tg_ends = np.ascontiguousarray(self._Tg[:, :2])  # (the vertex basis functions)
         self._n2 = n2
 
         # the vertices of the cell ends, in the order of s (fem_dual.recovery's vertex order)
@@ -307,7 +310,7 @@ class LocalAction:
         self._T = T  # (cells, q, 2, nd)
         self._native_tangents = self._tangents_loop()
 
-        self._held: Optional[Tuple[int, np.ndarray]] = None
+        self._held: Optional[Tuple[int, bytes]] = None
         self.error: Optional[str] = None  # why the implicit DtP map failed at the state
         self._initial_at: Optional[Tuple[int, np.ndarray]] = None
         self._both_at: Optional[tuple] = None  # (version, state, R) of the last evaluation
@@ -316,7 +319,7 @@ class LocalAction:
         # whether a compiled Newton factors the Jacobian at its solution for the tangents (an
         # error companion, which takes none, does without: fem_dual.driver.Simulation)
         self.factor_solution = True
-        self._mass_at: Optional[tuple] = None  # (M, M^-1, d initial rows / d z0)
+        self._mass_at: Optional[tuple] = None  # (M, M^-1, d initial rows / d z0, M^-1's C)
 
     def _pattern(self, upper: list) -> list:
         """The Hessian pairs (K, L) of `upper` whose entries are not zero at random dual states,
@@ -350,16 +353,20 @@ class LocalAction:
             return None
         if not self._current(self._held):
             self.error = p.pointwise.solve(p.comm)
-            self._held = (p.version, self._w.copy())
+            self._held = self._key()
         return self.error
 
     def _current(self, kept: Optional[tuple]) -> bool:
         """Whether `kept`, (version, dual state, ...), was made at the problem's current
         version and dual state (what the held DtP map, evaluation, factors and tangents are
         kept against)."""
-        p = self.problem
-        return (kept is not None and kept[0] == p.version
-                and np.array_equal(kept[1], self._w))
+        return (kept is not None and kept[0] == self.problem.version
+                and kept[1] == self._w.tobytes())
+
+    def _key(self) -> Tuple[int, bytes]:
+        """(version, dual state) of the current state, as `_current` compares them (the
+        state's bytes: equal bits, equal evaluations)."""
+        return self.problem.version, self._w.tobytes()
 
     # -- residual and Jacobian --------------------------------------------------------------
 
@@ -394,7 +401,7 @@ class LocalAction:
         cells, nq, bs = len(self.cells), self.nq, self.bs
         out = out.reshape(cells, nq, -1)
         R = self._residual(np.ascontiguousarray(out[..., :2 * bs]))
-        self._both_at = (self.problem.version, self._w.copy(), R)
+        self._both_at = self._key() + (R,)
         return R, self._band(out)
 
     @property
@@ -415,7 +422,7 @@ class LocalAction:
             return None
         p = self.problem
         self._w[self.free_global] = result.x
-        self._both_at = (p.version, self._w.copy(), result.F)
+        self._both_at = self._key() + (result.F,)
         if p.pointwise is not None:  # X and G_x^-1 solved there by the C loop
             self._held, self.error = self._both_at[:2], None
         if result.at_x is not None:
@@ -465,7 +472,12 @@ class LocalAction:
             (self._cell_rows, np.int64), (self._sign.reshape(cells, 2), float))]
         pointers = [native.pointer(ffi, a, "int64_t *" if a.dtype == np.int64 else "double *")
                     for a in arrays]  # (each keeps its array alive)
-        return built + (tuple(pointers),)
+        # its right-hand sides (solved in place), its output and work, reused by every call
+        K1 = self._n2 + 1
+        dw, dm = np.empty((self.size + 1, K1)), np.empty((cells, 2, self._n2, K1))
+        buffers = (dw, dm) + tuple(native.pointer(ffi, a) for a in (
+            self._out_both, dw, dm, np.empty(4 * self.bs * K1)))
+        return built + (tuple(pointers), buffers)
 
     def _band(self, out: np.ndarray) -> np.ndarray:
         """The Jacobian's band (dgbtrf's storage) from an evaluation (cells, q, columns)."""
@@ -502,9 +514,9 @@ class LocalAction:
             raise SolveError(message)
         held = self._held_evaluation()  # (a solved slab's last evaluation holds the gradient)
         g = (self._grad.into(self.cells, self._out_grad) if held is None
-             else np.ascontiguousarray(held[0][..., :2 * self.bs]))
-        r = np.matmul(self._Tg, g.reshape(len(self.cells), self.nq * 2, self.bs))
-        return self._sign * r[:, :2, :self._n2]
+             else held[0][..., :2 * self.bs])
+        r = np.matmul(self._Tg_ends, g.reshape(len(self.cells), self.nq * 2, self.bs))
+        return self._sign * r[..., :self._n2]
 
     # -- the exact tangent of the slab map ---------------------------------------------------
 
@@ -566,8 +578,7 @@ class LocalAction:
         """(factors, tangent matrix, Newton change) at the current state, kept while it is
         current."""
         if not self._current(self._tangent_at):
-            p = self.problem
-            key = (p.version, self._w.copy())
+            key = self._key()
             self._tangent_at = key + self._tangent_matrix()
         return self._tangent_at[2:]
 
@@ -589,10 +600,14 @@ class LocalAction:
             out, R = held
             lu = self._held_factors() or self.factor(self._band(out))
         # -d R / d z0, then -R (the Newton step's), and a zero row for the fixed unknowns
-        rhs = np.zeros((self.size + 1, K + 1))
-        rhs[:-1, K] = -R
+        with_base = p.base == "start" and self._base_derivative is not None
+        compiled = (self._native_tangents is not None and not with_base
+                    and out.flags.c_contiguous)
+        rhs = self._native_tangents[3][0] if compiled else np.empty((self.size + 1, K + 1))
+        rhs.fill(0.0)
+        np.negative(R, out=rhs[:-1, K])
         dg_base = None
-        if p.base == "start" and self._base_derivative is not None:  # d grad / d zbar
+        if with_base:  # d grad / d zbar
             dg_base = self._base_derivative(self.cells).reshape(cells, nq, 2 * bs, K)
             r = np.matmul(self._Tg, dg_base.reshape(cells, nq * 2, bs * K))  # (cells, nd, bs K)
             rows = r.reshape(-1, K)[self._r_keep]
@@ -602,8 +617,8 @@ class LocalAction:
         rhs[self.start_rows, :K] -= initial
         K1 = K + 1
         lu.solve_in_place(rhs[:-1])  # dw: (size, K + 1)
-        if self._native_tangents is not None and dg_base is None and out.flags.c_contiguous:
-            dm = self._compiled_tangents(out, rhs, Minv)
+        if compiled:
+            dm = self._compiled_tangents(out)
         else:
             cell_dw = rhs[self._cell_rows]  # (cells, nd, bs, K + 1)
             dZ = np.matmul(self._T.reshape(cells, nq * 2, -1),
@@ -618,22 +633,17 @@ class LocalAction:
         vertices = (self._vertex_mean @ dm.reshape(cells * 2, K * K1)).reshape(-1, K, K1)
         return lu, np.ascontiguousarray(vertices[..., :K]), vertices[..., K].copy()
 
-    def _compiled_tangents(self, out: np.ndarray, dw: np.ndarray,
-                           Minv: np.ndarray) -> np.ndarray:
+    def _compiled_tangents(self, out: np.ndarray) -> np.ndarray:
         """The numpy branch of _tangent_matrix after its solve in compiled code
         (fem_dual.native's `tangents`): dm (cells, 2, 2n, 2n + 1) from the solved unknowns dw
-        (size + 1, 2n + 1; the last row zero) and the evaluation out (cells, q, columns)."""
-        ffi, lib, fixed = self._native_tangents
+        (the loop's own right-hand sides, solved in place: (size + 1, 2n + 1), the last row
+        zero) and the evaluation out (cells, q, columns), which is `_out_both`'s."""
+        ffi, lib, fixed, (dw, dm, to_out, to_dw, to_dm, to_work) = self._native_tangents
         p, cells = self.problem, len(self.cells)
-        n, K1 = p.n, dw.shape[1]
-        dm = np.empty((cells, 2, 2 * n, K1))
-        Minv = np.ascontiguousarray(Minv, dtype=float)
         T, Tg, cols, pk, pl, rows, sign = fixed
-        lib.fem_dual_tangents(cells, self.nq, self.nd, self.bs, n, K1, T, Tg,
-                              ffi.from_buffer("double[]", out), out.shape[2], len(self.pairs),
-                              cols, pk, pl, ffi.from_buffer("double[]", dw), rows, sign,
-                              ffi.from_buffer("double[]", Minv), ffi.from_buffer("double[]", dm),
-                              ffi.from_buffer("double[]", np.empty(4 * self.bs * K1)))
+        lib.fem_dual_tangents(cells, self.nq, self.nd, self.bs, p.n, dw.shape[1], T, Tg,
+                              to_out, out.shape[2], len(self.pairs), cols, pk, pl, to_dw, rows,
+                              sign, self._mass_at[3], to_dm, to_work)
         return dm
 
     def _mass_derived(self) -> Tuple[np.ndarray, np.ndarray]:
@@ -641,7 +651,7 @@ class LocalAction:
         initial terms are linear in (x0, v0), with M their only constant."""
         p = self.problem
         M = p.c["M"].value
-        if self._mass_at is None or not np.array_equal(self._mass_at[0], M):
+        if self._mass_at is None or self._mass_at[0] != M.tobytes():
             n = p.n
             columns = []
             saved = p.x0.value.copy(), p.v0.value.copy()
@@ -651,7 +661,10 @@ class LocalAction:
                     columns.append(self._initial(self.cells[:1])[0, 0].copy())
             finally:
                 p.x0.value, p.v0.value = saved
-            self._mass_at = (M.copy(), np.linalg.inv(M), np.column_stack(columns))
+            Minv = np.ascontiguousarray(np.linalg.inv(M))
+            built = self._native_tangents
+            self._mass_at = (M.tobytes(), Minv, np.column_stack(columns),
+                             None if built is None else built[0].from_buffer("double[]", Minv))
         return self._mass_at[1], self._mass_at[2]
 
     def dense_jacobian(self) -> np.ndarray:
@@ -752,6 +765,7 @@ class NativeNewton:
             self.ffi.NULL if self.dtp is None else self.dtp.struct, "final",
             FACTORS_KEPT_STEP, self.ints + 2]
         self._slots = {a: i for i, a in enumerate(args) if isinstance(a, str)}
+        self._tests = (self._slots["atol"], self._slots["decrease"] + 1)  # (in this order)
         self._args = args
 
     def run(self, x0: np.ndarray, atol: float, check_start: bool, rtol: float, stol: float,
@@ -775,11 +789,9 @@ class NativeNewton:
         args[at["x"]] = ffi.from_buffer("double[]", x)
         final = np.empty((kd + 1, N), order="F") if local.factor_solution else None
         args[at["final"]] = ffi.NULL if final is None else ffi.from_buffer("double[]", final.T)
-        for name, value in (("atol", atol), ("check_start", int(check_start)), ("rtol", rtol),
-                            ("stol", stol), ("max_it", max_it),
-                            ("patience", -1 if patience is None else patience),
-                            ("no_progress", no_progress), ("decrease", decrease)):
-            args[at[name]] = value
+        args[self._tests[0]:self._tests[1]] = (
+            atol, int(check_start), rtol, stol, max_it, -1 if patience is None else patience,
+            no_progress, decrease)
         if self.dtp is not None:
             self.dtp.begin()
         status = self.lib.fem_dual_slab_newton(*args)
@@ -790,8 +802,8 @@ class NativeNewton:
             return None
         it, reason = self.ints[0], self.ints[1]
         last_step = float(self.doubles[1])
-        lu = BandedLU.of_cholesky(chol, kd) if it > 0 else None
-        at_x = (BandedLU.of_cholesky(final, kd) if self.ints[2]
+        lu = BandedLU.of_cholesky(chol, kd, (ffi, self.lib)) if it > 0 else None
+        at_x = (BandedLU.of_cholesky(final, kd, (ffi, self.lib)) if self.ints[2]
                 else lu if last_step <= FACTORS_KEPT_STEP else None)
         return NativeNewtonResult(_REASONS[reason], x, F.copy(),
                                   self.history[:it + 1].tolist(), lu,
