@@ -575,6 +575,7 @@ class _Estimates:
     floor: np.ndarray  # (slabs, 2): round-off floor of x and v errors
     err_local: np.ndarray  # weighted local error per unit of time (the controller's)
     err_global: np.ndarray
+    finite: np.ndarray  # (slabs,): whether every local and global error is finite
     err_output: Optional[np.ndarray] = None  # weighted interpolation error between vertices
 
     def slab(self, j: int, t0: float, dt: float) -> SlabEstimate:
@@ -603,13 +604,16 @@ def _estimates(vals: VertexValues, companion: VertexValues, algebraic: Optional[
     # local errors at the round-off floor are not resolved: counted as such they would grow per
     # unit of time as slabs shrink and drive the lengths down to the minimum
     floor = ROUNDOFF_REL * scales
-    above = np.abs(local)
-    above -= np.repeat(floor, n, axis=1)[:, None, :]  # (x's floor on x's columns, v's on v's)
-    np.maximum(above, 0.0, out=above)
-    with quiet_numpy():  # (the local and the global errors weighted in one pass)
+    with quiet_numpy():
+        # the largest |error| of x's and of v's (slabs, 2), NaN where one is NaN; less the
+        # floor, one number per part, that is the largest of max(|l| - floor, 0)
+        peak_local = weights.peaks(local)
+        peak_glob = peak_local if psi is None else weights.peaks(glob)
         count = len(scales)
-        both = weights.norms(np.concatenate([above, glob]), np.concatenate([scales, scales]))
+        both = weights.weigh(np.concatenate([np.maximum(peak_local - floor, 0.0), peak_glob]),
+                             np.concatenate([scales, scales]))  # (weighted in one pass)
         err_local, err_global = both[:count] / (np.asarray(dt) / T), both[count:]
+        finite = np.isfinite(peak_local).all(axis=1) & np.isfinite(peak_glob).all(axis=1)
         err_output = None
         if output is not None:
             scene, order = output
@@ -617,7 +621,7 @@ def _estimates(vals: VertexValues, companion: VertexValues, algebraic: Optional[
                               0.0)
             err_output = weights.norms(np.repeat(gaps, n, axis=1)[:, None, :], scales)
             err_local = np.maximum(err_local, err_output ** (order / GAP_ORDER))
-    return _Estimates(local, glob, scales, floor, err_local, err_global, err_output)
+    return _Estimates(local, glob, scales, floor, err_local, err_global, finite, err_output)
 
 
 def _batched(values: VertexValues) -> VertexValues:
@@ -652,7 +656,7 @@ def _judge(vals: VertexValues, companion: VertexValues, algebraic: Optional[np.n
     est = _estimates(_batched(vals), _batched(companion), one(algebraic), one(psi), one(lost),
                      weights, dt, T, output)
     local, glob = est.local[0], est.glob[0]
-    if not (np.isfinite(local).all() and np.isfinite(glob).all()):
+    if not est.finite[0]:
         return "retry", None, "the error estimate is not finite", None
     err_local = float(est.err_local[0])
     slab = est.slab(0, t0, dt)
@@ -756,10 +760,8 @@ def _start_rate(scene, x0: np.ndarray, v0: np.ndarray) -> float:
     if scene.linear:
         a0 = (scene.first_order_matrix() @ np.concatenate([x0, v0]))[scene.n:]
     else:
-        M, F = scene.mass_matrix(), np.asarray(scene.force_numpy(x0), dtype=float)
-        d = M.diagonal()
-        diagonal = not np.count_nonzero(M - np.diag(d))  # (the usual mass m I: no LAPACK)
-        a0 = F / d if diagonal else np.linalg.solve(M, F)
+        F, d = np.asarray(scene.force_numpy(x0), dtype=float), scene.mass_diagonal()
+        a0 = F / d if d is not None else np.linalg.solve(scene.mass_matrix(), F)
     return motion_rate(x0, v0, a0)
 
 
@@ -905,8 +907,7 @@ def _judge_chunk(config: RunConfig, state: _LoopState, schedule: SlabSchedule,
                      _output(config))
     est.glob[:, -1] = D[1:]
     t0s = (schedule.pos + schedule.length * np.arange(count)) * schedule.T / schedule.total
-    ok = (_finite(vals) & np.isfinite(est.local).reshape(count, -1).all(axis=1)
-          & np.isfinite(est.glob).reshape(count, -1).all(axis=1)
+    ok = (_finite(vals) & est.finite & np.isfinite(D[1:]).all(axis=1)
           & (est.err_local <= 1.0) & (est.err_global <= weights.tol.refuse_factor))
     if bound is not None:
         ok &= bound.allows(t0s + dt, vals)

@@ -137,7 +137,15 @@ class ErrorWeights:
 
     def norms(self, e: np.ndarray, scales: np.ndarray) -> np.ndarray:
         """`norm` of many slabs: e (slabs, vertices, 2n), scales (slabs, 2)."""
-        size = np.abs(e.reshape(len(e), -1, 2, self.n)).max(axis=(1, 3), initial=0.0)
+        return self.weigh(self.peaks(e), scales)
+
+    def peaks(self, e: np.ndarray) -> np.ndarray:
+        """(slabs, 2): max |e| of the x components and of the v components of each slab's
+        errors e (slabs, vertices, 2n); NaN where one is NaN."""
+        return np.abs(e.reshape(len(e), -1, 2, self.n)).max(axis=(1, 3), initial=0.0)
+
+    def weigh(self, size: np.ndarray, scales: np.ndarray) -> np.ndarray:
+        """`norms` from the peaks (slabs, 2) of the errors of x and of v."""
         weight = self.tol.atol + self.tol.rtol * scales
         if weight.min(initial=1.0) > 0:  # (the usual case: a few array calls fewer)
             return (size / weight).max(axis=1)

@@ -456,6 +456,15 @@ class Scene(abc.ABC):
     def mass_matrix(self) -> np.ndarray:
         """M, symmetric positive definite."""
 
+    def mass_diagonal(self) -> Optional[np.ndarray]:
+        """M's diagonal when M is diagonal (the usual m I: a division instead of LAPACK), else
+        None; once per object (a scene is frozen)."""
+        if "_mass_diagonal" not in self.__dict__:
+            M = self.mass_matrix()
+            d = M.diagonal().copy()
+            self.__dict__["_mass_diagonal"] = None if np.count_nonzero(M - np.diag(d)) else d
+        return self.__dict__["_mass_diagonal"]
+
     @abc.abstractmethod
     def constants(self) -> Dict[str, np.ndarray]:
         """Values of the fem.Constants its forms module uses, by name."""
