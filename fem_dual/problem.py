@@ -10,6 +10,8 @@ the base state (xbar, vbar) of H: changing slabs never recompiles a form.
 """
 from __future__ import annotations
 
+import functools
+
 from typing import Dict, Optional
 
 import basix
@@ -72,6 +74,10 @@ class SlabProblem:
         self.dt = constant(msh, 1.0)
         self.t0 = constant(msh, 0.0)
         self.x0, self.v0 = constant(msh, zero), constant(msh, zero)
+        # their values as numpy views of the C++ storage the kernels read (0.5.2's
+        # Constant.value setter costs 2 us a call, four to eight calls a slab solve)
+        self._slab_values = tuple(c._cpp_object.value for c in (self.dt, self.t0, self.x0,
+                                                                 self.v0))
         self.predictor = None
         if base in ("predictor", "rk4"):  # a function of time, one degree above the duals
             self.predictor = shared_predictor or predictor(
@@ -84,6 +90,11 @@ class SlabProblem:
             self._base_times = nodes.tabulate_dof_coordinates()[:, 0]
         else:
             self.xbar, self.vbar = constant(msh, zero), constant(msh, zero)
+        # where set_start writes the base state: the constants' values, or the functions'
+        # nodal values (n per node)
+        self._base_values = tuple(
+            b._cpp_object.value if self.predictor is None else b.x.array.reshape(-1, n)
+            for b in (self.xbar, self.vbar))
         # the base state in the UFL: a variable where it is a constant, so that the pointwise
         # assembly can differentiate the density in it (exact tangents of the slab map)
         self.Zbar = None if self.predictor is not None else ufl.variable(
@@ -210,7 +221,7 @@ class SlabProblem:
         """Destroy the PETSc vector of the dual state (solvers made it); collective."""
         release_function_vector(self.w)
 
-    @property
+    @functools.cached_property
     def num_dofs(self) -> int:
         imap = self.W.dofmap.index_map
         return imap.size_global * self.W.dofmap.index_map_bs
@@ -218,7 +229,8 @@ class SlabProblem:
     def set_slab(self, x0: np.ndarray, v0: np.ndarray, dt: float, t0: float = 0.0) -> None:
         """Start a slab [t0, t0 + dt] from (x0, v0), which is also the base state of H (base
         "start"); the dual state starts from zero, whose DtP image is the base state."""
-        self.dt.value, self.t0.value = dt, t0
+        values = self._slab_values
+        values[0][...], values[1][...] = dt, t0
         self.set_start(x0, v0)  # (bumps the version)
         self.w.x.array[:] = 0.0
         if self.pointwise is not None:
@@ -248,12 +260,12 @@ class SlabProblem:
         """The slab's start state, which is also its base state unless the base is zero; the
         dual state is kept (the tangent of the slab map perturbs the start of a solved slab)."""
         self.version += 1
-        self.x0.value, self.v0.value = x0, v0
+        values, (xbar, vbar) = self._slab_values, self._base_values
+        values[2][:], values[3][:] = x0, v0
         if self.base == "start":
-            self.xbar.value, self.vbar.value = x0, v0
+            xbar[:], vbar[:] = x0, v0
         elif self.predictor is not None:
             n = self.n
-            dt = float(self.dt.value)
-            zbar = self.predictor.along(np.concatenate([x0, v0]), self._base_times, dt)
-            self.xbar.x.array.reshape(-1, n)[:] = zbar[:, :n]
-            self.vbar.x.array.reshape(-1, n)[:] = zbar[:, n:]
+            zbar = self.predictor.along(np.concatenate([x0, v0]), self._base_times,
+                                        float(values[0]))
+            xbar[:], vbar[:] = zbar[:, :n], zbar[:, n:]
