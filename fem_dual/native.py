@@ -28,6 +28,8 @@ What it holds:
 - `tangents`: the exact tangents of a solved slab after their banded solve
   (fem_dual.local_action.LocalAction._tangent_matrix): the solved unknowns through the
   density's Hessian to the momenta at the cell ends (numpy: a dozen batched products).
+- `pack`: the gather of a compiled expression's coefficients into its kernel's rows
+  (`PackedExpression.pack`; numpy: a gather and a copy per coefficient).
 """
 from __future__ import annotations
 
@@ -631,6 +633,26 @@ void fem_dual_tangents(int cells, int nq, int nd, int bs, int n, int k1, const d
     }
 }
 
+/* PackedExpression.pack: the row of every cell, packed[e, offset[k] + j] =
+   values_k[index_k[e, j]], j < width[k], for the coefficients k (the addresses of their values
+   and of their (cells, width[k]) indices in `values` and `index`). */
+void fem_dual_pack(int cells, int ncoef, int wsize, const int64_t *width,
+                   const int64_t *offset, const uintptr_t *values, const uintptr_t *index,
+                   double *packed)
+{
+    int k, e, j;
+    for (k = 0; k < ncoef; ++k) {
+        const double *v = (const double *)values[k];
+        const int64_t *ix = (const int64_t *)index[k];
+        const int64_t m = width[k];
+        for (e = 0; e < cells; ++e) {
+            double *row = packed + (int64_t)e * wsize + offset[k];
+            const int64_t *at = ix + e * m;
+            for (j = 0; j < m; ++j) row[j] = v[at[j]];
+        }
+    }
+}
+
 /* The cubic Hermite of an rk4 run at m times (FlowPredictor.along): out[i] = sum_j w[i, j]
    [states; h rates][rows[i, j]], j < 4, for states and rates (steps + 1, n2) each. */
 void fem_dual_hermite(int m, int n2, int steps, double h, const int64_t *rows, const double *w,
@@ -699,7 +721,7 @@ int fem_dual_rk4(uintptr_t kernel, const double *c, int n, int steps, double h, 
 
 _SYMBOLS = ("fem_dual_rk4", "fem_dual_band", "fem_dual_dtp_newton",
             "fem_dual_slab_newton", "fem_dual_band_cholesky", "fem_dual_band_solve",
-            "fem_dual_tangents", "fem_dual_hermite")
+            "fem_dual_tangents", "fem_dual_hermite", "fem_dual_pack")
 
 
 def _declarations(source: str, names) -> str:
@@ -885,14 +907,40 @@ class PackedExpression:
             offset += index.shape[1]
         self._columns = columns
         self.packed = np.zeros((len(self.cells), max(offset, 1)))
+        self._compiled = self._compiled_pack()
         msh = expr.ufl_expression.ufl_domain().ufl_cargo()
         geometry = msh.geometry.dofmap.array.reshape(-1, 2)[self.cells]
         self.coords = np.ascontiguousarray(msh.geometry.x[geometry].reshape(len(self.cells), 6))
         self._constants = lambda: cpp.fem.pack_constants(expr._cpp_object)
         self.kernel = int(cffi.FFI().cast("uintptr_t", ufcx.tabulate_tensor_float64))
 
+    def _compiled_pack(self) -> Optional[tuple]:
+        """(the `pack` function, its arguments) of the compiled gather where the library is
+        available (the coefficients' value arrays are views of their vectors: they stay
+        valid), else None."""
+        built = library()
+        if built is None or not self._columns:
+            return None
+        ffi, lib = built
+        kept = [np.ascontiguousarray(index, dtype=np.int64) for _, _, index in self._columns]
+        views = [ffi.from_buffer("double[]", values) for _, values, _ in self._columns]
+        views += [ffi.from_buffer("int64_t[]", index) for index in kept]
+        address = (lambda view: int(ffi.cast("uintptr_t", view)))
+        count = len(kept)
+        width = np.array([index.shape[1] for index in kept], dtype=np.int64)
+        offset = np.concatenate([[0], np.cumsum(width)[:-1]]).astype(np.int64)
+        values = ffi.new("uintptr_t[]", [address(v) for v in views[:count]])
+        index = ffi.new("uintptr_t[]", [address(v) for v in views[count:]])
+        args = (len(self.cells), count, self.packed.shape[1], pointer(ffi, width, "int64_t *"),
+                pointer(ffi, offset, "int64_t *"), values, index, pointer(ffi, self.packed))
+        self._keep_alive = (kept, views, width, offset)
+        return lib.fem_dual_pack, args
+
     def pack(self) -> np.ndarray:
         """The rows of the coefficients' current values."""
+        if self._compiled is not None:
+            self._compiled[0](*self._compiled[1])
+            return self.packed
         start = 0
         for _, values, index in self._columns:
             self.packed[:, start:start + index.shape[1]] = values[index]
