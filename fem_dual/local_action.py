@@ -767,7 +767,25 @@ class NativeNewton:
         self._slots = {a: i for i, a in enumerate(args) if isinstance(a, str)}
         self._tests = (self._slots["atol"], self._slots["decrease"] + 1)  # (in this order)
         self._args = args
+        # the iterate and the factors (each solve's: the last solve's are dropped by the next,
+        # its held factors and tangents with its version), the constants and initial rows
+        # copied in: arrays with their C pointers, reused by every solve
+        self._kept = {}
+        for name, array in (("x", np.empty(N)), ("chol", np.empty((kd + 1, N), order="F")),
+                            ("final", np.empty((kd + 1, N), order="F"))):
+            self._kept[name] = (array, ffi.from_buffer("double[]", array.T))
+            args[self._slots[name]] = self._kept[name][1]
 
+    def _in(self, name: str, values: np.ndarray) -> None:
+        """Copy `values` into the argument `name`'s kept array (made, with its pointer, at the
+        first call and whenever the size changes)."""
+        kept = self._kept.get(name)
+        if kept is None or kept[0].shape != values.shape:
+            array = np.array(values, dtype=float, order="C")
+            self._kept[name] = (array, self.ffi.from_buffer("double[]", array))
+            self._args[self._slots[name]] = self._kept[name][1]
+        else:
+            kept[0][...] = values
     def run(self, x0: np.ndarray, atol: float, check_start: bool, rtol: float, stol: float,
             max_it: int, patience: Optional[int], no_progress: float,
             decrease: float) -> Optional[NativeNewtonResult]:
@@ -778,17 +796,13 @@ class NativeNewton:
         if max_it + 1 > len(self.history):
             raise ValueError(f"at most {len(self.history) - 1} Newton iterations")
         self.expr.pack()
-        constants = self.expr.constants()
-        initial = np.ascontiguousarray(local._initial_rows())
-        x = np.array(x0, dtype=float)
-        chol = np.empty((kd + 1, N), order="F")
-        args, at = self._args, self._slots
-        args[at["constants"]] = ffi.from_buffer("double[]", constants)
-        args[at["initial"]] = ffi.from_buffer("double[]", initial)
-        args[at["chol"]] = ffi.from_buffer("double[]", chol.T)
-        args[at["x"]] = ffi.from_buffer("double[]", x)
-        final = np.empty((kd + 1, N), order="F") if local.factor_solution else None
-        args[at["final"]] = ffi.NULL if final is None else ffi.from_buffer("double[]", final.T)
+        self._in("constants", self.expr.constants())
+        self._in("initial", local._initial_rows())
+        x, chol, final = (self._kept[name][0] for name in ("x", "chol", "final"))
+        x[:] = x0
+        args = self._args
+        args[self._slots["final"]] = (self._kept["final"][1] if local.factor_solution
+                                      else ffi.NULL)
         args[self._tests[0]:self._tests[1]] = (
             atol, int(check_start), rtol, stol, max_it, -1 if patience is None else patience,
             no_progress, decrease)

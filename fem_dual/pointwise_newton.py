@@ -113,7 +113,7 @@ class PointwiseNewtonSolver(_PointwiseSolver):
         if fast is not None:  # every step taken whole (else the numpy iteration decides)
             self._lu = fast.lu
             self._finish(fast.x, fast.reason, fast.history, len(fast.history) - 1, size,
-                         fast.backward, warm, None)
+                         fast.backward, warm, None, placed=True)
             return
         local.set_state(x)
         F, band = local.residual_and_jacobian()
@@ -193,9 +193,10 @@ class PointwiseNewtonSolver(_PointwiseSolver):
         self._finish(x, reason, history, it, size, backward, warm, failure)
 
     def _finish(self, x: np.ndarray, reason: str, history: List[float], it: int, size: float,
-                backward: float, warm: Optional[float], failure: Optional[str]) -> None:
-        """Record how Newton ended at x; raises SolveError where it failed short of the
-        round-off floor."""
+                backward: float, warm: Optional[float], failure: Optional[str],
+                placed: bool = False) -> None:
+        """Record how Newton ended at x (`placed`: the problem holds it already, as the compiled
+        Newton leaves it); raises SolveError where it failed short of the round-off floor."""
         local = self.local
         self.x = x
         floor = round_off_floor(history, size, backward, warm)
@@ -208,7 +209,8 @@ class PointwiseNewtonSolver(_PointwiseSolver):
                 raise SolveError(f"Newton did not converge ({reason}, residual "
                                  f"{history[-1]:.3g} after {it} iterations); use smaller "
                                  "slabs (more --slabs)")
-        local.set_state(x)
+        if not placed:
+            local.set_state(x)
         self._floor = floor
         self.iterations.append(it)
         self.residual_norms.append(history[-1])
