@@ -248,6 +248,7 @@ class Simulation:
             self.sampler = VertexSampler(self.problem, with_dual=with_dual, recovery=recovery)
         self.setup_s = time.perf_counter() - tic
         self._fresh = True
+        self._loops: Optional[List[str]] = None  # _compiled_loops, found at the first run
         self._companion: Optional["Simulation"] = None
         # whether a partner's solved dual state is a start for ours (solve_slab): not where our
         # base state is a run of our own (the companion's rk4, with twice the steps)
@@ -316,7 +317,7 @@ class Simulation:
 
     def begin(self, config: RunConfig) -> None:
         """Set up a run: the scene's parameter values, fresh counts, superposition bases."""
-        if config.scene != self.scene:
+        if config.scene is not self.scene and config.scene != self.scene:
             if self.modal is not None and self.modal.physical != config.scene:
                 self.modal = ModalBasis(config.scene)
                 if self._companion is not None:  # shares the modes
@@ -593,7 +594,7 @@ def _estimates(vals: VertexValues, companion: VertexValues, algebraic: Optional[
     enters the controller's error at the vertices' order (a slab whose gap exceeds it is
     retried shorter, as one whose local error does)."""
     n = vals.x.shape[-1]
-    local = np.concatenate([companion.x - vals.x, companion.v - vals.v], axis=-1)
+    local = companion.state() - vals.state()
     if algebraic is not None:  # the answer's own Newton error (the companion's cancels it)
         local += algebraic
     local *= ESTIMATE_SAFETY
@@ -1187,7 +1188,9 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool,
         record["assembly"] = ("pointwise" if sim.pointwise  # (never with kronecker)
                               else "kronecker" if sim.kronecker else "forms")
         record["base"] = config.base_state
-        record["compiled_loops"] = _compiled_loops(sim)
+        if sim._loops is None:  # (what the simulation compiled: the same every run)
+            sim._loops = _compiled_loops(sim)
+        record["compiled_loops"] = list(sim._loops)
         record["compiled_loops_unavailable"] = native.reason()  # why none ran, or None
         if scene.linear:
             record["coordinates"] = "modal" if sim.modal is not None else "physical"

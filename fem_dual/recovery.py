@@ -189,11 +189,12 @@ class VertexSampler:
             starts = np.concatenate([[0], np.cumsum(count)[:-1]])
             self._ends = (grouped[starts], grouped[starts + count - 1], len(flat))
         first, last, _ = self._ends  # the one or two rows of each vertex (x/2 is exact)
-        mean = 0.5 * rows[..., first, :] + 0.5 * rows[..., last, :]
+        mean = 0.5 * rows.take(first, axis=-2) + 0.5 * rows.take(last, axis=-2)
         s = mean[..., 0] if rows.ndim == 2 else mean[0, :, 0]
         n = self._n
         values = VertexValues(s=s, x=mean[..., 1:1 + n], v=mean[..., 1 + n:1 + 2 * n],
-                              hamiltonian=mean[..., 1 + 2 * n])
+                              hamiltonian=mean[..., 1 + 2 * n], z=mean[..., 1:1 + 2 * n],
+                              block=mean)
         if self.with_dual:
             values.xi = mean[..., 2 + 2 * n:2 + 3 * n]
             values.eta = mean[..., 2 + 3 * n:2 + 4 * n]

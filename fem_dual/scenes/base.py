@@ -479,11 +479,14 @@ class Scene(abc.ABC):
         return 2 * degree
 
     def parameters(self) -> Dict[str, object]:
-        """The parameter values (matrices as nested lists), for the JSON record."""
+        """The parameter values (matrices as nested lists), for the JSON record: new lists on
+        every call, from the fields read once per object (a scene is frozen)."""
+        if "_parameters" not in self.__dict__:
+            self.__dict__["_parameters"] = tuple(
+                (f.name, getattr(self, f.name)) for f in dataclasses.fields(self))
         out: Dict[str, object] = {}
-        for f in dataclasses.fields(self):
-            value = getattr(self, f.name)
+        for name, value in self.__dict__["_parameters"]:
             if isinstance(value, tuple):
                 value = [list(v) if isinstance(v, tuple) else v for v in value]
-            out[f.name] = value
+            out[name] = value
         return out
