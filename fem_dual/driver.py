@@ -586,14 +586,28 @@ class _Estimates:
 
 def _estimates(vals: VertexValues, companion: VertexValues, algebraic: Optional[np.ndarray],
                psi: Optional[np.ndarray], lost: Optional[np.ndarray], weights: ErrorWeights,
-               dt, T: float, output: Optional[Tuple[Any, int]] = None) -> _Estimates:
+               dt, T: float, output: Optional[Tuple[Any, int]] = None,
+               compiled: bool = True) -> _Estimates:
     """The estimates of consecutive slabs (values with a leading slab axis; lost (slabs, 2n)),
     each slab's motion recorded in the weights before the next. With `output` (the scene and
     the order 2p of the vertex values), times between the vertices are asked for: the
     interpolation error there (`slab_interpolation_gaps`) must be within the tolerance too, and
     enters the controller's error at the vertices' order (a slab whose gap exceeds it is
-    retried shorter, as one whose local error does)."""
+    retried shorter, as one whose local error does). In compiled code where it is available
+    (fem_dual.native's `estimate`, `compiled`), for finite values and positive weights; the
+    numpy below judges the rest."""
     n = vals.x.shape[-1]
+    done = _compiled_estimates(vals, companion, algebraic, psi, lost, weights, dt,
+                               T) if compiled else None
+    if done is not None:
+        local, glob, scales, floor, err_local, err_global = done
+        finite = np.ones(len(scales), dtype=bool)
+        if output is None:
+            return _Estimates(local, glob, scales, floor, err_local, err_global, finite)
+        with quiet_numpy():
+            return _with_output(vals, weights, dt, output,
+                                _Estimates(local, glob, scales, floor, err_local, err_global,
+                                           finite))
     local = companion.state() - vals.state()
     if algebraic is not None:  # the answer's own Newton error (the companion's cancels it)
         local += algebraic
@@ -615,14 +629,57 @@ def _estimates(vals: VertexValues, companion: VertexValues, algebraic: Optional[
                              np.concatenate([scales, scales]))  # (weighted in one pass)
         err_local, err_global = both[:count] / (np.asarray(dt) / T), both[count:]
         finite = np.isfinite(peak_local).all(axis=1) & np.isfinite(peak_glob).all(axis=1)
-        err_output = None
-        if output is not None:
-            scene, order = output
-            gaps = np.maximum(slab_interpolation_gaps(scene, vals.s, dt, vals.x, vals.v) - floor,
-                              0.0)
-            err_output = weights.norms(np.repeat(gaps, n, axis=1)[:, None, :], scales)
-            err_local = np.maximum(err_local, err_output ** (order / GAP_ORDER))
-    return _Estimates(local, glob, scales, floor, err_local, err_global, finite, err_output)
+        est = _Estimates(local, glob, scales, floor, err_local, err_global, finite)
+        return est if output is None else _with_output(vals, weights, dt, output, est)
+
+
+def _with_output(vals: VertexValues, weights: ErrorWeights, dt, output: Tuple[Any, int],
+                 est: _Estimates) -> _Estimates:
+    """`est` with the weighted interpolation error between the vertices (`_estimates`)."""
+    scene, order = output
+    n = vals.x.shape[-1]
+    gaps = np.maximum(slab_interpolation_gaps(scene, vals.s, dt, vals.x, vals.v) - est.floor,
+                      0.0)
+    est.err_output = weights.norms(np.repeat(gaps, n, axis=1)[:, None, :], est.scales)
+    est.err_local = np.maximum(est.err_local, est.err_output ** (order / GAP_ORDER))
+    return est
+
+
+def _compiled_estimates(vals: VertexValues, companion: VertexValues,
+                        algebraic: Optional[np.ndarray], psi: Optional[np.ndarray],
+                        lost: Optional[np.ndarray], weights: ErrorWeights, dt, T: float):
+    """(local, glob, scales, floor, err_local, err_global) of `_estimates` from fem_dual.native's
+    `estimate`; None where it is not compiled, or a value is not finite or a weight is not
+    positive (the numpy code judges those)."""
+    built = native.library()
+    if built is None:
+        return None
+    ffi, lib = built
+    z = vals.state()
+    if companion.state().shape != z.shape:
+        return None
+    S, V, m = z.shape
+    size = S * V * m
+    states = np.empty((2,) + z.shape)  # (one buffer, one pointer: the call's own arrays)
+    states[0], states[1] = z, companion.state()
+    out = np.empty(2 * size + 6 * S)  # local, glob, scales, floors, local and global errors
+    at, to = ffi.from_buffer("double[]", states), ffi.from_buffer("double[]", out)
+    d = (lambda a: ffi.NULL if a is None else
+         ffi.from_buffer("double[]", np.ascontiguousarray(a, dtype=float)))
+    per_slab = None if np.ndim(dt) == 0 else np.asarray(dt, dtype=float) / T
+    tol = weights.tol
+    failed = lib.fem_dual_estimate(
+        S, V, m // 2, at, at + size, d(algebraic), d(psi), d(lost), ESTIMATE_SAFETY,
+        ROUNDOFF_REL, tol.atol, tol.rtol, weights.scale_x, weights.scale_v,
+        float(dt) / T if per_slab is None else 0.0, d(per_slab), to, to + size,
+        to + 2 * size, to + 2 * size + 2 * S, to + 2 * size + 4 * S, to + 2 * size + 5 * S)
+    if failed:
+        return None
+    local = out[:size].reshape(S, V, m)
+    glob = local if psi is None else out[size:2 * size].reshape(S, V, m)
+    rest = out[2 * size:]
+    return (local, glob, rest[:2 * S].reshape(S, 2), rest[2 * S:4 * S].reshape(S, 2),
+            rest[4 * S:5 * S], rest[5 * S:])
 
 
 def _batched(values: VertexValues) -> VertexValues:

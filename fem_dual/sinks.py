@@ -100,6 +100,46 @@ class SlabBatch:
 _TINY = np.finfo(float).tiny
 
 
+def _summaries(batch: SlabBatch, keep: np.ndarray) -> tuple:
+    """What the Accumulator keeps of a batch: the reported error at the kept vertices (`keep`,
+    (slabs, vertices)) as rows (the larger of x's and v's) and its peak of x's and of v's, the
+    last vertex's (x's, v's), each slab's largest reported and local error, and H_d's low,
+    high and drift (high - low) / max |H_d| per slab."""
+    est = batch.reported()  # (slabs, vertices, 2): x's and v's
+    kept = est[keep]
+    local = np.abs(batch.local).reshape(len(batch), -1).max(axis=1, initial=0.0)
+    h = batch.values.hamiltonian
+    low, high = h.min(axis=1), h.max(axis=1)
+    scale = np.maximum(np.maximum(high, -low), _TINY)  # max |h|
+    return (kept.max(axis=1), kept.max(axis=0), est[-1, -1],
+            est.reshape(len(batch), -1).max(axis=1), local, low, high, (high - low) / scale)
+
+
+def _compiled_summaries(batch: SlabBatch) -> Optional[tuple]:
+    """`_summaries` in compiled code (fem_dual.native's `summary`); None where it is not
+    compiled or a value is not finite."""
+    from fem_dual import native
+
+    built = native.library()
+    if built is None:
+        return None
+    ffi, lib = built
+    S, V, m = batch.glob.shape
+    first = batch.first == 0
+    rows = S * (V - 1) + first
+    out = np.empty(rows + 6 + 5 * S)  # rows, peaks, final, per slab: glob, local, H's three
+    to = ffi.from_buffer("double[]", out)
+    d = (lambda a: ffi.from_buffer("double[]", np.ascontiguousarray(a, dtype=float)))
+    at = rows + 6
+    if lib.fem_dual_summary(S, V, m // 2, int(first), d(batch.glob), d(batch.local),
+                            d(batch.floor), d(batch.values.hamiltonian), _TINY, to, to + rows,
+                            to + rows + 2, to + at, to + at + S, to + at + 2 * S,
+                            to + at + 3 * S, to + at + 4 * S):
+        return None
+    per_slab = out[at:].reshape(5, S)
+    return (out[:rows], out[rows:rows + 2], out[rows + 2:rows + 4], *per_slab)
+
+
 class Accumulator:
     """Vertex arrays of the whole run and their errors against the reference (rank 0 only)."""
 
@@ -135,24 +175,18 @@ class Accumulator:
         if self.flow is not None:
             self._compare(t, x, v)
         self.t.append(t), self.x.append(x), self.v.append(v)
-        est = batch.reported()  # (slabs, vertices, 2): x's and v's
-        kept = est[keep]
-        self.est_rows.append(kept.max(axis=1))
-        peak_x, peak_v = kept.max(axis=0)
+        rows, (peak_x, peak_v), final, glob, local, low, high, drift = (
+            _compiled_summaries(batch) or _summaries(batch, keep))
+        self.est_rows.append(rows)
         self.est_x, self.est_v = max(self.est_x, peak_x), max(self.est_v, peak_v)
-        self.est_final = (float(est[-1, -1, 0]), float(est[-1, -1, 1]))
-        local = np.abs(batch.local).reshape(len(batch), -1).max(axis=1, initial=0.0)
-        glob = est.reshape(len(batch), -1).max(axis=1)
+        self.est_final = (float(final[0]), float(final[1]))
         self.estimates += [{"t0": float(a), "dt": float(b), "local": float(c), "global": float(d),
                             "local_weighted": float(e), "global_weighted": float(f)}
                            for a, b, c, d, e, f in zip(batch.t0, batch.dt, local, glob,
                                                        batch.local_weighted,
                                                        batch.global_weighted)]
-        h = vals.hamiltonian
-        low, high = h.min(axis=1), h.max(axis=1)
-        scale = np.maximum(np.maximum(high, -low), _TINY)  # max |h|
         self.ham += [{"min": float(a), "max": float(b), "drift": float(c)}
-                     for a, b, c in zip(low, high, (high - low) / scale)]
+                     for a, b, c in zip(low, high, drift)]
 
     def _kept(self, shape: Tuple[int, int], first: bool) -> np.ndarray:
         """Which vertices (slabs, vertices) of a batch the run's arrays take: each junction

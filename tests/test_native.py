@@ -418,3 +418,102 @@ def test_compiled_band_cholesky_is_lapacks(N, kd):
     lu = BandedLU(_band_storage(A, kd), kd)
     assert lu.cholesky is None and not lu.singular
     assert np.abs(A @ lu.solve(B) - B).max() <= 1e-12 * np.abs(B).max()
+
+
+def _estimate_case(rng, slabs: int, vertices: int, n: int, with_alg: bool, with_psi: bool,
+                   with_lost: bool, still: bool):
+    """Random answer and companion vertex values of `slabs` slabs (the companion a little off),
+    with the optional terms of driver._estimates; `still`: v is zero (a part that has not
+    moved)."""
+    from fem_dual.values import VertexValues
+
+    def values(z):
+        block = np.concatenate([np.zeros(z.shape[:2] + (1,)), z,
+                                np.ones(z.shape[:2] + (1,))], axis=-1)
+        return VertexValues(np.linspace(0, 1, vertices), block[..., 1:1 + n],
+                            block[..., 1 + n:1 + 2 * n], block[..., -1], z=block[..., 1:-1],
+                            block=block)
+    z = rng.uniform(-2.0, 2.0, (slabs, vertices, 2 * n))
+    if still:
+        z[..., n:] = 0.0
+    zc = z + rng.uniform(-1e-6, 1e-6, z.shape)
+    shape = (slabs, vertices, 2 * n)
+    return (values(z), values(zc), rng.uniform(-1e-9, 1e-9, shape) if with_alg else None,
+            rng.uniform(-1e-7, 1e-7, shape) if with_psi else None,
+            rng.uniform(-1e-8, 1e-8, (slabs, 2 * n)) if with_lost else None)
+
+
+@pytest.mark.parametrize("slabs, vertices, n", [(1, 2, 3), (1, 9, 2), (5, 3, 1), (4, 5, 3)])
+def test_compiled_estimates_are_the_numpy_ones(slabs, vertices, n):
+    """The compiled estimate (fem_dual.native's `estimate`) gives the numpy code's local and
+    global errors, scales, floors and weighted errors exactly, with and without the Newton
+    change, the propagated error and the damped part, from a start's scales that lead or lag,
+    for a part that has not moved, with and without atol, and with the interpolation error
+    asked for; a value that is not finite, or a weight that is zero, leaves the slab to the
+    numpy code."""
+    from fem_dual.driver import _compiled_estimates, _estimates
+    from fem_dual.stepper import ErrorWeights, Tolerance
+
+    rng = np.random.default_rng(10 * slabs + vertices + n)
+    checked = 0
+    for flags in np.ndindex(2, 2, 2, 2, 2):
+        with_alg, with_psi, with_lost, still, with_atol = map(bool, flags)
+        vals, comp, alg, psi, lost = _estimate_case(rng, slabs, vertices, n, with_alg,
+                                                    with_psi, with_lost, still)
+        tol = Tolerance(1e-6, 1e-9 if with_atol else 0.0, True)
+        start = 0.5 if with_lost else 5.0  # (below, then above the motion's size)
+        weights = ErrorWeights(tol, np.full(n, start), np.zeros(n) if still else np.ones(n))
+        dt = 0.25 if slabs == 1 else np.full(slabs, 0.25)
+        args = (vals, comp, alg, psi, lost, weights, dt, 2.0)
+        assert _compiled_estimates(*args) is not None or (still and not with_atol)
+        ours, theirs = _estimates(*args), _estimates(*args, compiled=False)
+        for name in ("local", "glob", "scales", "floor", "err_local", "err_global", "finite"):
+            assert np.array_equal(getattr(ours, name), getattr(theirs, name)), name
+        checked += 1
+    assert checked == 32
+    if n == 3:  # output times between the vertices: the interpolation error joins both alike
+        output = (get_scene("curl3d")(), 6)
+        ours = _estimates(*args, output=output)
+        theirs = _estimates(*args, output=output, compiled=False)
+        assert ours.err_output is not None
+        for name in ("err_output", "err_local", "err_global"):
+            assert np.array_equal(getattr(ours, name), getattr(theirs, name)), name
+    vals, comp, alg, psi, lost = _estimate_case(rng, slabs, vertices, n, True, True, True,
+                                                False)
+    weights = ErrorWeights(Tolerance(1e-6, 1e-9, True), np.ones(n), np.ones(n))
+    comp.z[0, -1, 0] = np.nan
+    args = (vals, comp, alg, psi, lost, weights, 0.25, 2.0)
+    assert _compiled_estimates(*args) is None
+    ours, theirs = _estimates(*args), _estimates(*args, compiled=False)
+    assert not ours.finite[0] and np.array_equal(ours.finite, theirs.finite)
+    assert np.array_equal(ours.err_global, theirs.err_global, equal_nan=True)
+
+
+@pytest.mark.parametrize("slabs, vertices, n, first", [(1, 2, 3, True), (1, 9, 2, False),
+                                                       (5, 3, 1, True), (4, 5, 3, False)])
+def test_compiled_summaries_are_the_numpy_ones(slabs, vertices, n, first):
+    """What the run's accumulator keeps of accepted slabs (the reported errors at the kept
+    vertices, their peaks, the last vertex's, each slab's largest errors and H_d's range and
+    drift) is the numpy code's exactly, with errors below and above the round-off floor and
+    H_d of either sign; a value that is not finite leaves the batch to the numpy code."""
+    from fem_dual.sinks import SlabBatch, _compiled_summaries, _summaries
+
+    rng = np.random.default_rng(100 * slabs + 10 * vertices + n)
+    vals, _, _, _, _ = _estimate_case(rng, slabs, vertices, n, False, False, False, False)
+    vals.block[..., -1] = rng.uniform(-3.0, 1.0, (slabs, vertices))  # H_d
+    local = rng.uniform(-1e-6, 1e-6, (slabs, vertices, 2 * n))
+    glob = local + rng.uniform(-1e-6, 1e-6, local.shape)
+    glob[0, 0, :n] = 1e-20  # below its floor
+    floor = rng.uniform(1e-13, 1e-11, (slabs, 2))
+    batch = SlabBatch(0 if first else 3, np.arange(slabs, dtype=float), np.full(slabs, 0.5),
+                      vals, local, glob, np.ones(slabs), np.ones(slabs), floor,
+                      np.zeros((slabs, 5)), np.ones((slabs, 2)))
+    keep = np.ones((slabs, vertices), dtype=bool)
+    keep[:, 0] = False
+    keep[0, 0] = first
+    ours, theirs = _compiled_summaries(batch), _summaries(batch, keep)
+    assert ours is not None and len(ours) == len(theirs) == 8
+    for a, b in zip(ours, theirs):
+        assert np.array_equal(a, b)
+    glob[-1, 1, 0] = np.inf
+    assert _compiled_summaries(batch) is None
