@@ -683,8 +683,11 @@ def _compiled_estimates(vals: VertexValues, companion: VertexValues,
 
 
 def _batched(values: VertexValues) -> VertexValues:
-    """One slab's values with a leading slab axis of length 1."""
-    return values.apply(lambda a: a[None])
+    """One slab's values with a leading slab axis of length 1 (what `_estimates` reads: s, x, v
+    and the state; H_d too)."""
+    z = values.z
+    return VertexValues(values.s, values.x[None], values.v[None], values.hamiltonian[None],
+                        z=None if z is None else z[None])
 
 
 def _output(config: RunConfig) -> Optional[Tuple[Any, int]]:
@@ -750,10 +753,11 @@ def _volume_kept(comm: MPI.Comm, sim: Simulation, z: np.ndarray, t0: float, dt: 
     predictor` ended ok 13 off with an estimate of 2e-3). On the rk4 base the exact tangent
     holds the base (its own change moves the answer by the discretisation error only).
     Collective."""
-    from fem_dual.base_state import grows_within
+    if sim.base == "predictor":
+        from fem_dual.base_state import grows_within
 
-    if sim.base == "predictor" and not grows_within(sim.scene, z[:sim.scene.n], dt):
-        return "accept", err, ""
+        if not grows_within(sim.scene, z[:sim.scene.n], dt):
+            return "accept", err, ""
     jacobian = getattr(sim.solver, "slab_jacobian", None)
     if jacobian is not None:  # (each rank holds the slab whole)
         J = jacobian()

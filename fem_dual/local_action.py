@@ -257,6 +257,11 @@ class LocalAction:
         self.free_global = np.flatnonzero((index >= 0).ravel())[np.argsort(
             index.ravel()[index.ravel() >= 0])]
         self.start_rows = index[np.isclose(s, 0.0)].ravel()  # the initial terms' rows
+        # (a slice where they are consecutive, as in time order: a view instead of a gather)
+        first, count = (int(self.start_rows[0]) if len(self.start_rows) else 0,
+                        len(self.start_rows))
+        consecutive = np.array_equal(self.start_rows, np.arange(first, first + count))
+        self._start_rows = slice(first, first + count) if consecutive else self.start_rows
 
         rows = index[dofs]  # (cells, nd, bs): the row of each cell unknown, -1 if fixed
         self._cell_rows = np.where(rows >= 0, rows, N)  # (fixed: row N, kept zero)
@@ -614,7 +619,7 @@ class LocalAction:
             for k in range(K):
                 rhs[:-1, k] = -np.bincount(self._r_rows, rows[:, k], minlength=self.size)
         Minv, initial = self._mass_derived()
-        rhs[self.start_rows, :K] -= initial
+        rhs[self._start_rows, :K] -= initial
         K1 = K + 1
         lu.solve_in_place(rhs[:-1])  # dw: (size, K + 1)
         if compiled:
