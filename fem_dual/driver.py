@@ -248,7 +248,6 @@ class Simulation:
             self.sampler = VertexSampler(self.problem, with_dual=with_dual, recovery=recovery)
         self.setup_s = time.perf_counter() - tic
         self._fresh = True
-        self._loops: Optional[List[str]] = None  # _compiled_loops, found at the first run
         self._companion: Optional["Simulation"] = None
         # whether a partner's solved dual state is a start for ours (solve_slab): not where our
         # base state is a run of our own (the companion's rk4, with twice the steps)
@@ -1249,9 +1248,7 @@ def _run_slabs(sim: Simulation, config: RunConfig, progress: bool,
         record["assembly"] = ("pointwise" if sim.pointwise  # (never with kronecker)
                               else "kronecker" if sim.kronecker else "forms")
         record["base"] = config.base_state
-        if sim._loops is None:  # (what the simulation compiled: the same every run)
-            sim._loops = _compiled_loops(sim)
-        record["compiled_loops"] = list(sim._loops)
+        record["compiled_loops"] = _compiled_loops(sim)
         record["compiled_loops_unavailable"] = native.reason()  # why none ran, or None
         if scene.linear:
             record["coordinates"] = "modal" if sim.modal is not None else "physical"

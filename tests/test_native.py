@@ -517,3 +517,28 @@ def test_compiled_summaries_are_the_numpy_ones(slabs, vertices, n, first):
         assert np.array_equal(a, b)
     glob[-1, 1, 0] = np.inf
     assert _compiled_summaries(batch) is None
+
+
+def test_a_reused_simulation_reports_the_loops_of_each_run():
+    """Whether the implicit DtP map ran compiled is known once it has run: a simulation whose
+    first run failed before any DtP solve (the rk4 base overflowed) says `dtp` for its next
+    run, as a fresh one does (it kept the first run's list once)."""
+    from fem_dual.driver import Simulation
+    from fem_dual.errors import SolveError
+
+    options = dict(assembly="forms", base="rk4", staging="off", reference="none")
+    bad = RunConfig.create("curl2d", x0="1e40,1e40", max_halvings=0, **options)
+    good = RunConfig.create("curl2d", slabs=2, **options)
+    sim = Simulation.for_config(bad)
+    try:
+        with pytest.raises(SolveError, match="overflowed"):
+            sim.run(bad)
+        reused = sim.run(good).solver["compiled_loops"]
+    finally:
+        sim.close()
+    fresh = Simulation.for_config(good)
+    try:
+        assert reused == fresh.run(good).solver["compiled_loops"]
+    finally:
+        fresh.close()
+    assert "dtp" in reused
