@@ -595,7 +595,6 @@ def _estimates(vals: VertexValues, companion: VertexValues, algebraic: Optional[
     retried shorter, as one whose local error does). In compiled code where it is available
     (fem_dual.native's `estimate`, `compiled`), for finite values and positive weights; the
     numpy below judges the rest."""
-    n = vals.x.shape[-1]
     done = _compiled_estimates(vals, companion, algebraic, psi, lost, weights, dt,
                                T) if compiled else None
     if done is not None:

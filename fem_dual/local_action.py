@@ -796,8 +796,7 @@ class NativeNewton:
             decrease: float) -> Optional[NativeNewtonResult]:
         """Newton from x0 with the tests of PointwiseNewtonSolver.solve; None where the numpy
         iteration must decide (see fem_dual.native)."""
-        ffi, local = self.ffi, self.local
-        N, kd = local.size, local.kd
+        ffi, local, kd = self.ffi, self.local, self.local.kd
         if max_it + 1 > len(self.history):
             raise ValueError(f"at most {len(self.history) - 1} Newton iterations")
         self.expr.pack()
