@@ -114,7 +114,7 @@ def run_auto(ntst: int, work: Path):
 
 def fem_dual_orbit(start: np.ndarray, period: float, degree: int, cells: int):
     from fem_dual.config import _scene
-    from fem_dual.orbit import Orbits
+    from fem_dual.analysis.orbit import Orbits
 
     scene = _scene("force", {"F": f"-x - {A}*y**2, -2*y - {A}*x**2"})
     orbits, companion = Orbits(scene, degree, cells), Orbits(scene, degree + 1, cells)

@@ -24,8 +24,8 @@ from fem_dual import RunConfig  # first: it sets one BLAS thread per rank under 
 
 import numpy as np  # noqa: E402
 from mpi4py import MPI  # noqa: E402
-from fem_dual.driver import Simulation
-from fem_dual.flutter import critical_load, eigen_rate
+from fem_dual.integrate.simulation import Simulation
+from fem_dual.analysis.flutter import critical_load, eigen_rate
 from fem_dual.mpi import allreduce, print0
 from fem_dual.scenes.column import lowest_mode, scaled_column, scaled_column_params
 
@@ -95,10 +95,10 @@ def main(argv=None) -> int:
 
 
 def _expm_peer(scene, x0, result, solve_s: float, repeats: int = 3) -> dict:
-    """The matrix-exponential propagator (fem_dual.bench) at fem-dual's output times: best of
+    """The matrix-exponential propagator (fem_dual.analysis.bench) at fem-dual's output times: best of
     `repeats` wall times, its error against the reference, and fem-dual's wall time (set-up
     excluded) over it."""
-    from fem_dual.bench import _expm_propagator
+    from fem_dual.analysis.bench import _expm_propagator
 
     A = scene.first_order_matrix()
     z0 = np.concatenate([x0, np.zeros_like(x0)])
@@ -109,7 +109,7 @@ def _expm_peer(scene, x0, result, solve_s: float, repeats: int = 3) -> dict:
         walls.append(time.perf_counter() - tic)
     x_ref, _ = scene.reference(x0, np.zeros_like(x0))(result.t)
     n = len(x0)
-    from fem_dual.modal import _real_modes
+    from fem_dual.slab.modal import _real_modes
 
     tic = time.perf_counter()  # fem-dual's set-up for modal coordinates, once per scene
     _real_modes(scene.mass_matrix(), scene.stiffness_matrix())

@@ -12,7 +12,7 @@ import sys
 import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
-import fem_dual.dense as dense  # noqa: E402
+import fem_dual.integrate.dense as dense  # noqa: E402
 from fem_dual.config import _scene  # noqa: E402
 
 CASES = [("force", {"F": "-100*x"}, [1.0], [0.0], 2.0),

@@ -18,9 +18,9 @@ from pathlib import Path
 from mpi4py import MPI
 
 from fem_dual import RunConfig
-from fem_dual import bench as bm
+from fem_dual.analysis import bench as bm
 from fem_dual.mpi import print0
-from fem_dual.stress import _scaled_column
+from fem_dual.analysis.stress import _scaled_column
 
 CASES = {
     "two-modes": (lambda: RunConfig.create(

@@ -19,7 +19,7 @@ import numpy as np
 from mpi4py import MPI
 
 from fem_dual import RunConfig
-from fem_dual.flutter import flutter
+from fem_dual.analysis.flutter import flutter
 from fem_dual.mpi import print0
 
 comm = MPI.COMM_WORLD

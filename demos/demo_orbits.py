@@ -1,7 +1,7 @@
 # # Periodic orbits from the dual principle: a curl-force family and Ziegler's modes up to flutter
 #
 # `fem-dual orbit` makes the dual fields periodic and the period an unknown of the dual action
-# (fem_dual.orbit). Two families, each followed by continuation from the orbit before:
+# (fem_dual.analysis.orbit). Two families, each followed by continuation from the orbit before:
 #
 # 1. The non-conservative curl force $F = (-x - a y^2,\; -2y - a x^2)$ (curl $= a(y - x)$),
 #    the orbit born from the $x$-mode, as the curl strength $a$ grows from 0 to 1: its period,
@@ -21,7 +21,7 @@ import scipy.linalg as sla
 from mpi4py import MPI
 
 from fem_dual.config import _scene
-from fem_dual.orbit import orbit_family
+from fem_dual.analysis.orbit import orbit_family
 
 comm = MPI.COMM_WORLD
 out = Path("out_orbits")

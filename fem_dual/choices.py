@@ -3,7 +3,7 @@ line answers bad input without importing DOLFINx or PETSc)."""
 
 __all__ = ["BASES", "RECOVERIES"]
 
-# the base state of H on a slab: see fem_dual.problem
+# the base state of H on a slab: see fem_dual.slab.problem
 BASES = ("start", "zero", "predictor", "rk4")
-# how the primal state is read from the dual solution: see fem_dual.recovery
+# how the primal state is read from the dual solution: see fem_dual.slab.recovery
 RECOVERIES = ("momentum", "dtp")

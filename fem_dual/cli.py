@@ -24,7 +24,7 @@ from fem_dual.errors import InputError, SolveError
 if TYPE_CHECKING:  # annotations only
     from mpi4py import MPI
 
-    from fem_dual.driver import RunResult
+    from fem_dual.integrate.simulation import RunResult
 
 __all__ = ["main", "build_parser"]
 
@@ -373,7 +373,7 @@ def _int_list(name: str, text: str) -> List[int]:
 
 
 def _bench(args, params, comm: MPI.Comm) -> int:
-    from fem_dual import bench as bm
+    from fem_dual.analysis import bench as bm
     from fem_dual.config import RunConfig
     from fem_dual.output import check_output_dir_on_root
 
@@ -427,7 +427,7 @@ def _bench(args, params, comm: MPI.Comm) -> int:
 
 def _flutter(args, params, comm: MPI.Comm) -> int:
     from fem_dual.config import RunConfig
-    from fem_dual.flutter import flutter
+    from fem_dual.analysis.flutter import flutter
     from fem_dual.scenes import SCENES
 
     scene = SCENES.get(args.scene)
@@ -452,7 +452,7 @@ def _orbit(args, params, comm) -> int:
     """`fem-dual orbit`: rank 0 solves (an orbit's time mesh is small), the others wait for its
     exit status. Exit 0 ok, 2 bad input, 3 no orbit (the JSON says what was reached)."""
     from fem_dual.config import RunConfig
-    from fem_dual.orbit_input import Energy, parse_continuation, parse_mode
+    from fem_dual.analysis.orbit_input import Energy, parse_continuation, parse_mode
 
     if args.F is not None:
         if args.scene != "force":
@@ -476,7 +476,7 @@ def _orbit(args, params, comm) -> int:
         raise InputError(f"cells={args.cells} is too large for orbits (at most 4096)")
     config = RunConfig.create(args.scene, params, T=args.period, cells=args.cells,
                               degree=args.degree, x0=args.x0, v0=args.v0, check_petsc=False)
-    from fem_dual.orbit_input import check_resolution
+    from fem_dual.analysis.orbit_input import check_resolution
 
     check_resolution(config.scene, config.x0, config.v0, config.T, config.cells)
     continuation = (None if args.continuation is None
@@ -526,7 +526,7 @@ def _orbit(args, params, comm) -> int:
 
 def _orbit_on_root(args, config, params, mode, energy, continuation, dirs):
     from fem_dual.compat import quiet_jit_logging
-    from fem_dual.orbit import orbit_family, orbit_summary, write_orbit_files
+    from fem_dual.analysis.orbit import orbit_family, orbit_summary, write_orbit_files
 
     with _stdout_to_stderr(args.json), quiet_jit_logging():  # (expressions compile lazily)
         try:
@@ -559,7 +559,7 @@ def _stress(args, comm: MPI.Comm) -> int:
     """Exit 0 when every case behaved as it must, 1 when one FAILed."""
     import dataclasses
 
-    from fem_dual import stress as st
+    from fem_dual.analysis import stress as st
 
     if args.list:
         _print0(comm, "\n".join(f"{c.name}{' (slow)' if c.slow else ''}: {c.expected}"
@@ -653,7 +653,7 @@ def _main(argv: Optional[Sequence[str]], comm: "Optional[MPI.Comm]") -> int:
         if args.resume and args.out is None:
             raise InputError("--resume needs --out: the directory of the run to go on with")
         comm = _world(comm)  # after the values are checked: bad input answers before MPI loads
-        from fem_dual.driver import run
+        from fem_dual.integrate.simulation import run
 
         files = _check_files(comm, args)  # after validation: bad input writes nothing
         with _stdout_to_stderr(args.json):

@@ -12,13 +12,13 @@ from typing import Dict, Mapping, Optional, Sequence, Union
 
 import numpy as np
 
-from fem_dual.base_state import stiff_at_start
+from fem_dual.slab.base_state import stiff_at_start
 from fem_dual.errors import InputError
 from fem_dual.choices import BASES, RECOVERIES
 from fem_dual.scenes import Scene, get_scene
 from fem_dual.scenes.base import (DENSE_BUDGET, DENSE_WORDS, MAX_DOFS, parse_number,
                                   parse_vector, show)
-from fem_dual.stepper import ROUNDOFF_REL, Tolerance
+from fem_dual.integrate.estimate import ROUNDOFF_REL, Tolerance
 
 __all__ = ["RunConfig", "MAX_VERTICES", "MAX_DEGREE", "STAGING_LIMIT", "MAX_DOFS",
            "DENSE_BUDGET", "DENSE_WORDS"]
@@ -93,7 +93,7 @@ def _within_state_max(what: str, values: np.ndarray, advice: str) -> None:
     """InputError when an entry of `values` (the start state, the force there) exceeds
     STATE_MAX, where the dual action's squares overflow (it ended as a Newton failure with an
     infinite residual, exit 3)."""
-    from fem_dual.orbit_input import STATE_MAX
+    from fem_dual.analysis.orbit_input import STATE_MAX
 
     size = float(np.abs(values).max(initial=0.0))
     if size > STATE_MAX:
@@ -227,13 +227,13 @@ class RunConfig:
     base: str = "auto"  # H's base state per slab: start, zero, auto (see base_state)
     coordinates: str = "auto"  # linear scenes: physical, modal, auto (see modal)
     reference: str = "auto"  # auto: the scene's reference; none: skip it (error is null)
-    t_eval: Optional[np.ndarray] = None  # extra output times (dense output, fem_dual.dense)
+    t_eval: Optional[np.ndarray] = None  # extra output times (dense output, fem_dual.integrate.dense)
 
     @functools.cached_property
     def base_state(self) -> str:  # cached: stiff_at_start differentiates the force
         """The base state in use: `base`, with auto resolved. Linear scenes with energy weights
         (stiff ones): zero, residual-free, damps what the slabs do not resolve. Nonlinear scenes
-        stiff at the start: the predictor (fem_dual.base_state). Otherwise the start state,
+        stiff at the start: the predictor (fem_dual.slab.base_state). Otherwise the start state,
         the reference's time staging, as accurate and cheaper there."""
         if self.base != "auto":
             return self.base
@@ -249,11 +249,11 @@ class RunConfig:
 
     @functools.cached_property
     def modal(self) -> bool:
-        """Whether the slabs are solved in modal coordinates (fem_dual.modal): asked for, or
+        """Whether the slabs are solved in modal coordinates (fem_dual.slab.modal): asked for, or
         auto for a stiff linear scene on the zero base whose modes allow it."""
         if self.coordinates != "auto":
             return self.coordinates == "modal"
-        from fem_dual.modal import modal_obstacle
+        from fem_dual.slab.modal import modal_obstacle
 
         return (self._stiff_linear and self.base_state == "zero"
                 and self.scene.n <= MODAL_MAX_DOFS and modal_obstacle(self.scene) is None)
@@ -269,7 +269,7 @@ class RunConfig:
     @functools.cached_property
     def pointwise(self) -> bool:
         """Whether the slabs are assembled pointwise and solved by banded LU (linear scenes) or
-        the dense Newton (nonlinear ones) of fem_dual.pointwise_newton: asked for, or auto
+        the dense Newton (nonlinear ones) of fem_dual.slab.pointwise_newton: asked for, or auto
         (`auto_pointwise`)."""
         if self.assembly != "auto":
             return self.assembly == "pointwise"
@@ -317,7 +317,7 @@ class RunConfig:
         """Validate every input; raises InputError naming the first bad value.
 
         With `rtol` (and optionally `atol`) the slab lengths are chosen by the error estimate
-        so that the estimated error stays within atol + rtol * scale (see fem_dual.stepper);
+        so that the estimated error stays within atol + rtol * scale (see fem_dual.integrate.estimate);
         `slabs` is then only the first guess's upper bound and must be left at 1."""
         scene = _scene(scene, params)
         T_value = scene.default_T if T is None else parse_number("T", T)
@@ -373,7 +373,7 @@ class RunConfig:
             if not scene.linear:
                 raise InputError(f"coordinates=modal needs a linear scene ({scene.name} is "
                                  "nonlinear)")
-            from fem_dual.modal import modal_obstacle
+            from fem_dual.slab.modal import modal_obstacle
 
             obstacle = modal_obstacle(scene)
             if obstacle:

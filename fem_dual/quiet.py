@@ -16,7 +16,7 @@ class quiet_numpy:  # noqa: N801 -- used as a function: `with quiet_numpy():`
     """numpy's floating-point warnings off: a state that overflows gives inf or NaN, which the
     Newton and the driver judge (a warning would be a second message). Inside another such
     block the warnings are off already, and no np.errstate is entered again (5 us a call: a run
-    of the slab loop enters one for all its pointwise calls, fem_dual.driver.Simulation.run).
+    of the slab loop enters one for all its pointwise calls, fem_dual.integrate.simulation.Simulation.run).
     A class, not a generator context manager: the nested blocks of a run cost a tenth."""
 
     __slots__ = ("_state",)

@@ -11,7 +11,7 @@ def linear_forms_on_use(module: str):
 
     def __getattr__(name: str):
         if name in LINEAR_FORMS:
-            return getattr(importlib.import_module("forms.linear"), name)
+            return getattr(importlib.import_module("fem_dual.forms.linear"), name)
         raise AttributeError(f"module {module!r} has no attribute {name!r}")
 
     return __getattr__

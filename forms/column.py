@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from forms import linear_forms_on_use
+from fem_dual.forms import linear_forms_on_use
 
 # its dual forms are those of forms.linear, loaded on first use: the scene's matrices validate
 # input without importing UFL

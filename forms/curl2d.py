@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from ufl import as_vector
 
-from forms.predual import isotropic_aux
+from fem_dual.forms.predual import isotropic_aux
 
 __all__ = ["dtp", "force", "aux_potential", "velocity_map", "position_equations"]
 

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 
 from fem_dual import RunConfig, run
-from fem_dual import driver
-from fem_dual.driver import Simulation
+from fem_dual.integrate import simulation as driver
+from fem_dual.integrate.simulation import Simulation
 from fem_dual.errors import SolveError
-from fem_dual.kronecker import KroneckerSuperposition, decoupled_blocks, probes
+from fem_dual.slab.kronecker import KroneckerSuperposition, decoupled_blocks, probes
 
 
 def _close(a, b, rel):

@@ -191,7 +191,7 @@ def test_a_failed_run_writes_its_partial_json_with_infinite_residuals_as_null(ca
     the partial result's JSON raised ValueError (a traceback, exit 1) instead of exit 3 with
     the slabs kept (found by the session 16 hostile test; it predates the session). The rk4
     base of that run, p + 1 steps a cell (session 17: 8 (p + 1)), led there."""
-    monkeypatch.setattr("fem_dual.problem.RK4_STEPS_PER_NODE", 1)
+    monkeypatch.setattr("fem_dual.slab.problem.RK4_STEPS_PER_NODE", 1)
     assert main(["run", "curl3d", "--base", "rk4", "--T", "40", "--rtol", "1e-10", "--degree",
                  "6", "--cells", "8", "--json"]) == 3
     data = json.loads(capsys.readouterr().out)

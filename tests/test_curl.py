@@ -10,8 +10,8 @@ from mpi4py import MPI
 
 from fem_dual import RunConfig, SolveError, run
 from fem_dual.cli import main
-from fem_dual.newton import NewtonSlabSolver
-from fem_dual.problem import SlabProblem
+from fem_dual.slab.snes import NewtonSlabSolver
+from fem_dual.slab.problem import SlabProblem
 from fem_dual.scenes import get_scene
 from helpers import observed_rates
 

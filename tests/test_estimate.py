@@ -12,8 +12,8 @@ import pytest
 
 from fem_dual import RunConfig, SolveError, run
 from fem_dual.cli import main
-from fem_dual.stepper import ErrorWeights, Tolerance, stalled, step_factor
-from meshes import SlabSchedule
+from fem_dual.integrate.estimate import ErrorWeights, Tolerance, stalled, step_factor
+from fem_dual.meshes import SlabSchedule
 
 JUDGED_ABOVE = 1e-11  # below this the reference's own error and round-off dominate
 
@@ -306,7 +306,7 @@ def test_the_snes_path_judges_volume_by_difference_tangents():
 def test_volume_defect_of_exact_flows():
     from scipy.linalg import expm
 
-    from fem_dual.stepper import volume_defect
+    from fem_dual.integrate.estimate import volume_defect
 
     rng = np.random.default_rng(4)
     n = 3

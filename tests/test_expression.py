@@ -16,13 +16,13 @@ from hypothesis import strategies as st
 from ufl.algorithms import expand_derivatives
 
 import fem_dual.expression as expression
-import forms.curl2d as curl2d_forms
+import fem_dual.forms.curl2d as curl2d_forms
 from fem_dual.errors import InputError
 from fem_dual.expression import (FUNCTIONS, MAX_COMPONENTS, RESERVED, SCENE_PARAMETERS,
                                  ForceExpression, check_parameter_names, coordinate_names,
                                  parse_force)
-from forms import implicit
-from forms.predual import isotropic_quadratic
+from fem_dual.forms import implicit
+from fem_dual.forms.predual import isotropic_quadratic
 
 pytestmark = pytest.mark.serial
 

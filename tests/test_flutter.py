@@ -8,7 +8,7 @@ from mpi4py import MPI
 
 from fem_dual import RunConfig, run
 from fem_dual.cli import main
-from fem_dual.flutter import flutter, growth_rate
+from fem_dual.analysis.flutter import flutter, growth_rate
 from fem_dual.scenes import get_scene
 from helpers import observed_rates
 
@@ -83,7 +83,7 @@ def test_damped_column_against_the_matrix_exponential():
 
 
 def test_column_approaches_beck_as_links_grow():
-    from fem_dual.flutter import critical_load, eigen_rate
+    from fem_dual.analysis.flutter import critical_load, eigen_rate
     loads = []
     for links in (10, 20, 40):
         scene = get_scene("column").from_params(
@@ -155,7 +155,7 @@ def test_flutter_still_reports_a_system_unstable_without_load(param, capsys):
 
 def test_critical_load_refuses_a_rate_unstable_at_zero():
     from fem_dual.errors import InputError
-    from fem_dual.flutter import critical_load
+    from fem_dual.analysis.flutter import critical_load
     with pytest.raises(InputError, match="already unstable without load"):
         critical_load(lambda P: 0.01 + P, 1e-9)
     assert critical_load(lambda P: P - 1.5, 1e-9) == pytest.approx(1.5, rel=1e-5)
@@ -164,7 +164,7 @@ def test_critical_load_refuses_a_rate_unstable_at_zero():
 def test_eigen_threshold_is_relative_to_the_frequencies():
     """At l = 1e9 the frequencies are 1e-9: the former absolute threshold 1e-9 on the real part
     put the load at 5.0 l/c instead of 7/2 - sqrt 2."""
-    from fem_dual.flutter import critical_load, eigen_rate, eigen_tolerance
+    from fem_dual.analysis.flutter import critical_load, eigen_rate, eigen_tolerance
     for l in (1e-3, 1.0, 1e9):
         scene = get_scene("ziegler").from_params({"l": repr(l)})
         load = critical_load(eigen_rate(scene), eigen_tolerance(scene))
@@ -191,7 +191,7 @@ def _dyadic_times(lengths, cells=4):
 def test_growth_fit_of_non_uniform_samples(P):
     """Slabs of different lengths: only pairs a common step apart obey one map (the former fit
     took t[1] - t[0] for every step)."""
-    from fem_dual.flutter import fit_growth
+    from fem_dual.analysis.flutter import fit_growth
     t = _dyadic_times([0.25] * 8 + [0.5] * 12 + [0.25] * 8 + [1.0] * 10)
     x, v = _exact_motion(t, P)
     lam = np.linalg.eigvals(get_scene("ziegler").from_params({"P": repr(P)})
@@ -204,7 +204,7 @@ def test_growth_fit_of_non_uniform_samples(P):
 
 
 def test_growth_fit_knows_a_window_too_short():
-    from fem_dual.flutter import fit_growth
+    from fem_dual.analysis.flutter import fit_growth
     t = np.linspace(0, 1e-9, 17)
     x, v = _exact_motion(t)
     assert not fit_growth(t, x, v).resolved
@@ -233,7 +233,7 @@ def _fake_run(shift=0.0, fail=None):
 def test_growth_the_eigenvalues_contradict_is_a_solve_error(monkeypatch):
     """Growth at P = 0 in the dual simulation but not in the eigenvalues: the run's numerical
     growth, exit 3, not the input's instability, exit 2."""
-    import fem_dual.flutter as fl
+    import fem_dual.analysis.flutter as fl
     from fem_dual.errors import SolveError
     monkeypatch.setattr(fl, "run", _fake_run(shift=0.01))
     with pytest.raises(SolveError, match="grows without load where the eigenvalues do not"):
@@ -245,7 +245,7 @@ def test_growth_the_eigenvalues_contradict_is_a_solve_error(monkeypatch):
 
 @pytest.mark.serial
 def test_a_failed_dual_simulation_is_a_solve_error(monkeypatch, capsys):
-    import fem_dual.flutter as fl
+    import fem_dual.analysis.flutter as fl
     monkeypatch.setattr(fl, "run", _fake_run(fail="slab 3: the slab matrix is singular"))
     assert main(["flutter", "ziegler"]) == 3
     err = capsys.readouterr().err

@@ -133,8 +133,8 @@ SCENE_FILE = '''
 import dataclasses, ufl
 from typing import ClassVar
 from fem_dual.scenes import ForceScene
-from forms import implicit
-from forms.predual import isotropic_quadratic
+from fem_dual.forms import implicit
+from fem_dual.forms.predual import isotropic_quadratic
 
 @dataclasses.dataclass(frozen=True)
 class FileSwirl(ForceScene):
@@ -218,7 +218,8 @@ def test_rtol_holds_at_the_t_eval_times_between_far_vertices():
 def test_t_eval_beyond_what_the_run_vouches_for_fails(monkeypatch):
     """Without the slab loop's judging of the gaps (patched out), the estimate at the t-eval
     times exceeds the tolerance: the run fails (exit 3) with its results kept, never ok."""
-    from fem_dual import SolveError, driver
+    from fem_dual import SolveError
+    from fem_dual.integrate import simulation as driver
 
     monkeypatch.setattr(driver, "_output", lambda config: None)
     with pytest.raises(SolveError, match="--t-eval times is estimated") as caught:
@@ -230,7 +231,7 @@ def test_t_eval_beyond_what_the_run_vouches_for_fails(monkeypatch):
 
 def test_slab_gaps_are_the_dense_estimate_at_their_points():
     from fem_dual.config import _scene
-    from fem_dual.dense import GAP_POINTS, hermite_estimate, slab_interpolation_gaps
+    from fem_dual.integrate.dense import GAP_POINTS, hermite_estimate, slab_interpolation_gaps
 
     scene = _scene("force", {"F": "-x - x**3, -2*y + 0.3*x*y"})
     r = run(RunConfig.create(scene, T=3, slabs=3, cells=4, degree=3, x0="1,0.5", v0="0,1"))

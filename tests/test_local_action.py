@@ -1,15 +1,15 @@
-"""The pointwise assembly (fem_dual.local_action) is the forms' assembly: the same residual and
-Jacobian to round-off, and its Newton (fem_dual.pointwise_newton) the SNES's answer."""
+"""The pointwise assembly (fem_dual.slab.local_action) is the forms' assembly: the same residual and
+Jacobian to round-off, and its Newton (fem_dual.slab.pointwise_newton) the SNES's answer."""
 import numpy as np
 import pytest
 from dolfinx.fem import petsc as fem_petsc
 from mpi4py import MPI
 
 from fem_dual import InputError, RunConfig, run
-from fem_dual.local_action import LocalAction
-from fem_dual.problem import SlabProblem
+from fem_dual.slab.local_action import LocalAction
+from fem_dual.slab.problem import SlabProblem
 from fem_dual.scenes import get_scene
-from fem_dual.solvers import CompiledSlab
+from fem_dual.slab.petsc_solvers import CompiledSlab
 
 SCENES = ["curl3d", "curl2d", "curl2d-ufl", "curl2d-lifted", "curl3d-ufl"]
 
@@ -56,7 +56,7 @@ def test_residual_and_jacobian_equal_the_forms(scene, base):
 @pytest.mark.serial
 def test_momenta_equal_the_forms_recovery():
     """The momenta at the cell ends from the pointwise residual equal CellMomenta's."""
-    from fem_dual.recovery import CellMomenta
+    from fem_dual.slab.recovery import CellMomenta
 
     problem = SlabProblem(get_scene("curl2d")(), 4, 3, MPI.COMM_SELF)
     local = LocalAction(problem)
@@ -128,7 +128,7 @@ def test_exact_tangent_of_the_slab_map(scene, base):
     Richardson-extrapolated central difference of fresh slab solves to 1e-10 of its size (the
     difference's own truncation error), where a single central difference with the step of
     the forms path errs by 1e-8 .. 1e-5."""
-    from fem_dual.driver import Simulation
+    from fem_dual.integrate.simulation import Simulation
 
     s = get_scene(scene)()
     config = RunConfig.create(s, T=1.0, cells=4, degree=4, slabs=1, staging="off",
@@ -157,7 +157,7 @@ def test_newton_change_is_the_sampled_newton_step_to_second_order(scene):
     Newton step, linearised) equals the sampled change of that step, displaced dual state
     and implicit DtP map included, up to the square of the step: halving the distance from
     the solution quarters the difference."""
-    from fem_dual.driver import Simulation
+    from fem_dual.integrate.simulation import Simulation
 
     s = get_scene(scene)()
     config = RunConfig.create(s, T=1.0, cells=4, degree=4, slabs=1, staging="off",

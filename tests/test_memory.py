@@ -12,7 +12,7 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from fem_dual import RunConfig, run
-from fem_dual.driver import Simulation
+from fem_dual.integrate.simulation import Simulation
 
 # In a fresh process: the other tests' allocations would move the pytest process's RSS. RssAnon,
 # not VmRSS: file-backed pages leave VmRSS when other processes press on memory (measured: -42 MB

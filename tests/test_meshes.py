@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from meshes import SlabSchedule
-from meshes.time_mesh import FIRST_PATIENCE, MAX_PATIENCE
+from fem_dual.meshes import SlabSchedule
+from fem_dual.meshes.time_mesh import FIRST_PATIENCE, MAX_PATIENCE
 
 
 def _walk(schedule, fail_at=()):

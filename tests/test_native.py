@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from fem_dual import RunConfig, native, run
-from fem_dual.base_state import FlowPredictor
+from fem_dual.slab.base_state import FlowPredictor
 from fem_dual.scenes import get_scene
 from fem_dual.scenes.curl import Curl3D
 
@@ -79,7 +79,7 @@ def test_runs_without_the_compiled_loops_give_the_same_answer(monkeypatch):
 @pytest.mark.parametrize("scene, degree, cells", [("curl3d", 6, 3), ("curl2d", 4, 2),
                                                   ("curl2d-lifted", 3, 2), ("curl3d", 10, 1)])
 def test_compiled_band_is_the_numpy_band(scene, degree, cells):
-    from fem_dual.driver import Simulation
+    from fem_dual.integrate.simulation import Simulation
 
     config = RunConfig.create(scene, T=1, cells=cells, degree=degree, staging="off",
                               reference="none")
@@ -136,7 +136,7 @@ def _dtp_pair(scene, params, scale, seed=5):
     (X, iterations, message) of each."""
     from mpi4py import MPI
 
-    from fem_dual.driver import Simulation
+    from fem_dual.integrate.simulation import Simulation
 
     config = RunConfig.create(scene, params, T=1, cells=3, degree=3, staging="off",
                               reference="none", x0="0.5" if scene == "force" else None)
@@ -198,7 +198,7 @@ def _slab_newton(scene, params, base, dt, x0, v0, compiled=True, bail=False, war
     error message, whether the compiled Newton answered)."""
     from mpi4py import MPI
 
-    from fem_dual.driver import Simulation
+    from fem_dual.integrate.simulation import Simulation
     from fem_dual.errors import SolveError
 
     config = RunConfig.create(scene, params, T=dt, cells=2, degree=3, base=base,
@@ -320,8 +320,8 @@ def test_the_compiled_newton_factors_the_jacobian_at_its_solution():
     factors it from the band it assembled there (a last step of 1.5e-5 relative here, too far
     for the last step's factors), and the tangents equal those of a fresh factorisation; the
     error companion, which takes no tangents, does without."""
-    from fem_dual.driver import Simulation
-    from fem_dual.local_action import FACTORS_KEPT_STEP
+    from fem_dual.integrate.simulation import Simulation
+    from fem_dual.slab.local_action import FACTORS_KEPT_STEP
 
     config = RunConfig.create("curl3d", T=8, cells=8, degree=8, base="rk4", staging="off",
                               reference="none")
@@ -358,7 +358,7 @@ def test_compiled_tangents_are_the_numpy_products(scene, params, base, cells, x0
     """The exact tangents of a solved slab and its Newton change, mapped to the vertices in
     compiled code after their banded solve, are the numpy products' (to round-off), and a run
     takes them."""
-    from fem_dual.driver import Simulation
+    from fem_dual.integrate.simulation import Simulation
 
     config = RunConfig.create(scene, params, T=1.5, cells=cells, degree=4, base=base,
                               staging="off", reference="none", x0=x0, v0=v0)
@@ -397,7 +397,7 @@ def test_compiled_band_cholesky_is_lapacks(N, kd):
     definite falls back to LU with pivoting."""
     from scipy.linalg import lapack
 
-    from fem_dual.local_action import BandedLU
+    from fem_dual.slab.local_action import BandedLU
 
     rng = np.random.default_rng(N)
     A = np.zeros((N, N))
@@ -425,7 +425,7 @@ def _estimate_case(rng, slabs: int, vertices: int, n: int, with_alg: bool, with_
     """Random answer and companion vertex values of `slabs` slabs (the companion a little off),
     with the optional terms of driver._estimates; `still`: v is zero (a part that has not
     moved)."""
-    from fem_dual.values import VertexValues
+    from fem_dual.slab.values import VertexValues
 
     def values(z):
         block = np.concatenate([np.zeros(z.shape[:2] + (1,)), z,
@@ -451,8 +451,8 @@ def test_compiled_estimates_are_the_numpy_ones(slabs, vertices, n):
     for a part that has not moved, with and without atol, and with the interpolation error
     asked for; a value that is not finite, or a weight that is zero, leaves the slab to the
     numpy code."""
-    from fem_dual.driver import _compiled_estimates, _estimates
-    from fem_dual.stepper import ErrorWeights, Tolerance
+    from fem_dual.integrate.simulation import _compiled_estimates, _estimates
+    from fem_dual.integrate.estimate import ErrorWeights, Tolerance
 
     rng = np.random.default_rng(10 * slabs + vertices + n)
     checked = 0
@@ -496,7 +496,7 @@ def test_compiled_summaries_are_the_numpy_ones(slabs, vertices, n, first):
     vertices, their peaks, the last vertex's, each slab's largest errors and H_d's range and
     drift) is the numpy code's exactly, with errors below and above the round-off floor and
     H_d of either sign; a value that is not finite leaves the batch to the numpy code."""
-    from fem_dual.sinks import SlabBatch, _compiled_summaries, _summaries
+    from fem_dual.integrate.sinks import SlabBatch, _compiled_summaries, _summaries
 
     rng = np.random.default_rng(100 * slabs + 10 * vertices + n)
     vals, _, _, _, _ = _estimate_case(rng, slabs, vertices, n, False, False, False, False)
@@ -523,7 +523,7 @@ def test_a_reused_simulation_reports_the_loops_of_each_run():
     """Whether the implicit DtP map ran compiled is known once it has run: a simulation whose
     first run failed before any DtP solve (the rk4 base overflowed) says `dtp` for its next
     run, as a fresh one does (it kept the first run's list once)."""
-    from fem_dual.driver import Simulation
+    from fem_dual.integrate.simulation import Simulation
     from fem_dual.errors import SolveError
 
     options = dict(assembly="forms", base="rk4", staging="off", reference="none")

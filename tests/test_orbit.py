@@ -12,8 +12,8 @@ from scipy.integrate import solve_ivp
 
 from fem_dual.cli import main
 from fem_dual.config import _scene
-from fem_dual.floquet import SlabFlow, multiplier_distance, nontrivial
-from fem_dual.orbit import Orbits
+from fem_dual.analysis.floquet import SlabFlow, multiplier_distance, nontrivial
+from fem_dual.analysis.orbit import Orbits
 
 FEM_DUAL = [sys.executable, "-m", "fem_dual.cli"]
 CURL = {"F": "-x - 0.5*y**2, -2*y - 0.5*x**2"}  # a curl force: dFy/dx - dFx/dy = y - x
@@ -302,7 +302,7 @@ def test_orbit_under_mpi_equals_serial(tmp_path_factory, capsys):
 def test_multipliers_it_cannot_vouch_for_are_a_failure(monkeypatch):
     """With the flow held at the orbit's 8 cells (p = 4), the curl force's multipliers differ
     by 1.4e-6 between degrees p and p + 1: status failed, not ok."""
-    import fem_dual.orbit as orbit
+    import fem_dual.analysis.orbit as orbit
 
     monkeypatch.setattr(orbit, "FLOW_MAX_CELLS", 8)
     force = _scene("force", CURL)
@@ -340,7 +340,7 @@ def test_energy_mode_on_forces_with_a_potential():
     at E against quadrature, near the guess's energy (one Newton) and far from it (steps in
     energy); a 2-dof potential's orbit has the energy E of an independent potential and closes
     under DOP853; a curl force has no energy."""
-    from fem_dual.orbit import Energy
+    from fem_dual.analysis.orbit import Energy
 
     duffing = _scene("force", {"F": "-x - x**3"})
     has = Energy.of(duffing, np.array([0.5]))
@@ -383,7 +383,7 @@ def test_energy_mode_from_the_linear_limit_to_negative_energies():
     x - x^3 (V = -x^2/2 + x^4/4 + y^2/2). A fast force (sin(40 x)) gets its energy from a finer
     rule of the line integral: the energy of its orbit is (1 - cos 40x) / 40 + v^2 / 2. (Found
     by a hostile test.)"""
-    from fem_dual.orbit import Energy
+    from fem_dual.analysis.orbit import Energy
 
     cases = [({"F": "-sin(x) + 0.3*y**2*sin(x), -2*y - 0.6*y*cos(x)"}, [1.4e-4, 0.0], 6.3, 1e-8,
               lambda x, v: 1 - np.cos(x[0]) + x[1] ** 2 * (1 - 0.3 * np.cos(x[0]))
@@ -413,7 +413,7 @@ def test_no_energy_where_the_potential_cannot_be_integrated():
     quadrature's nonsense, -2.8e6), and mode energy is refused (exit 2, in test_bad_orbit_input);
     -sin(40 x) needs more than
     12 Gauss points (its energy was 0.57 % off). (Found by a hostile test.)"""
-    from fem_dual.orbit_input import Energy
+    from fem_dual.analysis.orbit_input import Energy
 
     singular = _scene("force", {"F": "1/x**3 - x**3"})
     assert Energy.of(singular, np.array([1.1])) is None
@@ -464,7 +464,7 @@ def test_the_pair_at_1_is_deflated_not_split_by_the_jordan_block():
     orbit near a separatrix printed multipliers 2.8 and 0.36 beside an estimate of 5e-15. With
     the flow's direction deflated the pair stays within O(e) of 1, and the nontrivial ones are
     the monodromy's own. (Found by a hostile test.)"""
-    from fem_dual.floquet import floquet_multipliers
+    from fem_dual.analysis.floquet import floquet_multipliers
 
     f = np.array([0.0, 1.0, 0.0, 0.0])  # the flow's direction; the family's is e_0
     R = np.array([[np.cos(2.0), -np.sin(2.0)], [np.sin(2.0), np.cos(2.0)]])
@@ -498,7 +498,7 @@ def test_energy_mode_says_what_it_reached_and_what_no_family_member_has(tmp_path
                  "--mode", "energy=-1", "--json"], tmp_path)
     assert proc.returncode == 3
     assert "below the energy 0 of the equilibrium x = [0.0]" in json.loads(proc.stdout)["message"]
-    from fem_dual.orbit import _orbit_advice
+    from fem_dual.analysis.orbit import _orbit_advice
 
     for advice in ("use smaller slabs (more --slabs)", "loosen --rtol, or raise --cells or "
                    "--degree", "use smaller slabs or larger alpha"):

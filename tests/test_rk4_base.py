@@ -1,13 +1,13 @@
-"""Issue 17: the rk4 base state (fem_dual.base_state.FlowPredictor) lets Newton converge on long
+"""Issue 17: the rk4 base state (fem_dual.slab.base_state.FlowPredictor) lets Newton converge on long
 slabs of a nonlinear motion that is not stiff, so --rtol takes the slabs accuracy needs, with the
 same error estimate. References: DOP853 at rtol = atol = 1e-13 (the scenes' own)."""
 import numpy as np
 import pytest
 
 from fem_dual import RunConfig, SolveError, run
-from fem_dual.base_state import FlowPredictor
+from fem_dual.slab.base_state import FlowPredictor
 from fem_dual.cli import main
-from fem_dual.driver import Simulation
+from fem_dual.integrate.simulation import Simulation
 from fem_dual.scenes import get_scene
 
 JUDGED_ABOVE = 1e-11  # below this the reference's own error dominates

@@ -5,7 +5,7 @@ import pytest
 
 from fem_dual import RunConfig
 from fem_dual.cli import main
-from fem_dual.stress import CASES, Case, run_case
+from fem_dual.analysis.stress import CASES, Case, run_case
 
 
 @pytest.mark.mpi

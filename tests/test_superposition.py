@@ -6,7 +6,7 @@ import pytest
 from mpi4py import MPI
 
 from fem_dual import RunConfig, run
-from fem_dual.driver import Simulation
+from fem_dual.integrate.simulation import Simulation
 
 CASES = {"ziegler-damped": ("ziegler", {"d1": "0.05", "d2": "0.02"}),
          "column-3": ("column", {"links": "3", "P": "1.5"}),
@@ -108,7 +108,7 @@ def test_the_slab_map_check_refuses_growth_not_round_off():
     a decaying map is not refused for its distance from the exact decay; a map that grows
     where the flow does not is."""
     from fem_dual.errors import SolveError
-    from fem_dual.superposition import check_slab_map
+    from fem_dual.slab.superposition import check_slab_map
 
     scene = RunConfig.create("ziegler", {"d1": "1", "d2": "1"}).scene
     rate = float(np.abs(scene.spectrum[0]).max())

@@ -8,8 +8,8 @@ import ufl
 
 from fem_dual import RunConfig, run
 from fem_dual.scenes import SCENES, ForceScene, register
-from forms import implicit
-from forms.predual import isotropic_quadratic
+from fem_dual.forms import implicit
+from fem_dual.forms.predual import isotropic_quadratic
 from helpers import observed_rates
 
 

@@ -7,7 +7,7 @@ from dolfinx.fem import petsc as fem_petsc
 from mpi4py import MPI
 
 from fem_dual import RunConfig, run
-from fem_dual.problem import SlabProblem
+from fem_dual.slab.problem import SlabProblem
 from fem_dual.reference import IVPFlow
 from fem_dual.scenes import get_scene
 from helpers import observed_rates, ziegler_errors
@@ -145,7 +145,7 @@ def test_cg_with_preconditioner_by_options_matches_lu():
 @pytest.mark.mpi
 def test_factorisation_reuse_equals_reassembly():
     """Equal slabs reuse one assembled, factored matrix; a fresh solver per slab agrees."""
-    from fem_dual.solvers import LinearSlabSolver
+    from fem_dual.slab.petsc_solvers import LinearSlabSolver
 
     scene = get_scene("ziegler")()
     problem = SlabProblem(scene, degree=3, cells=12)

@@ -20,8 +20,8 @@ class RecFlow(LinearFlow):
 pass
 
 from fem_dual import RunConfig
-from fem_dual.driver import Simulation
-from fem_dual.flutter import critical_load, eigen_rate
+from fem_dual.integrate.simulation import Simulation
+from fem_dual.analysis.flutter import critical_load, eigen_rate
 from column_scale import column_params
 
 links, ratio = 200, 0.5

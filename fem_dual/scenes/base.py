@@ -62,7 +62,7 @@ class LazyForms:
 
 def implicit_forms(module):
     """forms.implicit's map from a module's force and auxiliary potential."""
-    from forms import implicit
+    from fem_dual.forms import implicit
 
     return implicit.make(module.force, module.aux_potential)
 

@@ -20,7 +20,7 @@ class Column(LinearScene):
     link), length l, tip follower load P. links=2, m=2,1 reproduces `ziegler`."""
 
     name: ClassVar[str] = "column"
-    forms: ClassVar = LazyForms("forms.column")
+    forms: ClassVar = LazyForms("fem_dual.forms.column")
     default_T: ClassVar[float] = 20.0
     summary: ClassVar[str] = "N-link follower-load column (Ziegler for N = 2, Beck for large N)"
     size_field: ClassVar[str] = "links"  # from 2 to MAX_DOFS (the memory rule of scenes.base)

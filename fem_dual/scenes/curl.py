@@ -77,7 +77,7 @@ class Curl3D(ForceScene):
 
     name: ClassVar[str] = "curl3d"
     n: ClassVar[int] = 3
-    forms: ClassVar = LazyForms("forms.curl3d")
+    forms: ClassVar = LazyForms("fem_dual.forms.curl3d")
     default_T: ClassVar[float] = 2.0
     default_x0: ClassVar[Tuple[float, ...]] = (0.3, 0.2, 0.1)
     default_v0: ClassVar[Tuple[float, ...]] = (0.0, 0.0, 0.0)
@@ -129,7 +129,7 @@ class Curl2D(ForceScene):
 
     name: ClassVar[str] = "curl2d"
     n: ClassVar[int] = 2
-    forms: ClassVar = LazyForms("forms.curl2d")
+    forms: ClassVar = LazyForms("fem_dual.forms.curl2d")
     default_T: ClassVar[float] = 2.0
     default_x0: ClassVar[Tuple[float, ...]] = (1.0, 1.0)
     default_v0: ClassVar[Tuple[float, ...]] = (0.0, 0.0)
@@ -151,7 +151,7 @@ class Curl3DUFL(Curl3D):
     """curl3d declared as a user-defined force: implicit DtP path, G derived by UFL."""
 
     name: ClassVar[str] = "curl3d-ufl"
-    forms: ClassVar = LazyForms("forms.curl3d", implicit_forms)
+    forms: ClassVar = LazyForms("fem_dual.forms.curl3d", implicit_forms)
     summary: ClassVar[str] = "curl3d as a user-defined force (G derived by UFL)"
 
 
@@ -160,7 +160,7 @@ class Curl2DUFL(Curl2D):
     """curl2d declared as a user-defined force: G derived by UFL."""
 
     name: ClassVar[str] = "curl2d-ufl"
-    forms: ClassVar = LazyForms("forms.curl2d", implicit_forms)
+    forms: ClassVar = LazyForms("fem_dual.forms.curl2d", implicit_forms)
     summary: ClassVar[str] = "curl2d as a user-defined force (G derived by UFL)"
 
 
@@ -169,5 +169,5 @@ class Curl2DLifted(Curl2D):
     """curl2d by quadratic lifting: explicit augmented DtP map, multipliers lambda, mu."""
 
     name: ClassVar[str] = "curl2d-lifted"
-    forms: ClassVar = LazyForms("forms.curl2d_lifted")
+    forms: ClassVar = LazyForms("fem_dual.forms.curl2d_lifted")
     summary: ClassVar[str] = "curl2d by quadratic lifting r = y^2, s = x^2 (remark of section 3.1)"

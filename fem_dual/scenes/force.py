@@ -79,8 +79,8 @@ class ExpressionForce(ForceScene):
 
     @functools.cached_property
     def forms(self):  # type: ignore[override]
-        from forms import implicit
-        from forms.predual import isotropic_aux
+        from fem_dual.forms import implicit
+        from fem_dual.forms.predual import isotropic_aux
 
         return implicit.make(self.expression.ufl, isotropic_aux)
 

@@ -49,7 +49,7 @@ class LinearScene(Scene):
     """M q'' + D q' + K q = 0 with the explicit DtP map of forms.linear; one KSP solve per slab."""
 
     linear: ClassVar[bool] = True
-    forms: ClassVar = LazyForms("forms.linear")
+    forms: ClassVar = LazyForms("fem_dual.forms.linear")
 
     A: Optional[tuple] = matrix_field("H's position matrix (SPD); default from `weights`")
     B: Optional[tuple] = matrix_field("H's velocity matrix (SPD); default from `weights`")

@@ -19,7 +19,7 @@ class Ziegler(LinearScene):
 
     name: ClassVar[str] = "ziegler"
     n: ClassVar[int] = 2
-    forms: ClassVar = LazyForms("forms.ziegler")
+    forms: ClassVar = LazyForms("fem_dual.forms.ziegler")
     default_T: ClassVar[float] = 20.0
     default_x0: ClassVar[Tuple[float, ...]] = (0.1, 0.0)
     default_v0: ClassVar[Tuple[float, ...]] = (0.0, 0.0)

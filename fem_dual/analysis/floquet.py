@@ -122,7 +122,7 @@ class SlabFlow:
         (the orbit's extent), to which the tangents' difference steps are relative, not to
         the size of the state (an orbit far from the origin). Raises SolveError."""
         from fem_dual.config import RunConfig
-        from fem_dual.driver import Simulation
+        from fem_dual.integrate.simulation import Simulation
 
         n = scene.n
         slabs = max(1, -(-cells // FLOW_CELLS))

@@ -1,6 +1,6 @@
 """Periodic orbits from the dual principle (`fem-dual orbit`).
 
-Time is rescaled, s = t / T on [0, 1]: the slab problem of fem_dual.problem with dt = T, dual
+Time is rescaled, s = t / T on [0, 1]: the slab problem of fem_dual.slab.problem with dt = T, dual
 fields that are periodic (the dofs at s = 1 are those at s = 0) and no initial-condition term.
 Varying the action then gives the equations of motion and x^(1) = x^(0), v^(1) = v^(0) as
 natural conditions. The base state (xbar, vbar)(s) of H is the guess of the orbit; the
@@ -53,13 +53,13 @@ from fem_dual import faults
 from fem_dual.compat import (CellPointEvaluator, constant, destroy_petsc, quiet_jit_logging,
                              vector_space)
 from fem_dual.errors import InputError, SolveError
-from fem_dual.floquet import (FLOW_MAX_CELLS, FLOW_START_CELLS, FLOW_TARGET, MAX_FOLD,
+from fem_dual.analysis.floquet import (FLOW_MAX_CELLS, FLOW_START_CELLS, FLOW_TARGET, MAX_FOLD,
                               MULTIPLIER_TOL, SlabFlow, floquet_multipliers, monodromy,
                               multiplier_distance, stop_if_asked, vector_field)
-from fem_dual.orbit_input import MODES, Energy, parse_mode
-from fem_dual.problem import SlabProblem
-from fem_dual.recovery import CellMomenta
-from meshes import slab_mesh
+from fem_dual.analysis.orbit_input import MODES, Energy, parse_mode
+from fem_dual.slab.problem import SlabProblem
+from fem_dual.slab.recovery import CellMomenta
+from fem_dual.meshes import slab_mesh
 
 __all__ = ["OrbitProblem", "OrbitResult", "OrbitSolver", "Orbits", "orbit_family",
            "orbit_summary", "write_orbit_files", "plot_orbit", "Energy", "MODES", "parse_mode"]
@@ -383,13 +383,13 @@ class OrbitSolver:
 
 class OrbitGuess:
     """An orbit found as the guess of another (its vertex values, Hermite-interpolated at the
-    base nodes: fem_dual.dense, order 8), in place of a run's motion."""
+    base nodes: fem_dual.integrate.dense, order 8), in place of a run's motion."""
 
     def __init__(self, scene, t: np.ndarray, x: np.ndarray, v: np.ndarray):
         self.scene, self.t, self.x, self.v = scene, t, x, v
 
     def at(self, times: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-        from fem_dual.dense import hermite_at
+        from fem_dual.integrate.dense import hermite_at
 
         return hermite_at(self.scene, self.t, self.x, self.v, times)
 
@@ -406,7 +406,7 @@ class GuessMotion:
     def __call__(self, scene, x0: np.ndarray, v0: np.ndarray, T0: float):
         """The run's result (its `at(times)` gives the motion anywhere in [0, T0])."""
         from fem_dual.config import RunConfig
-        from fem_dual.driver import Simulation
+        from fem_dual.integrate.simulation import Simulation
 
         for rtol in GUESS_RTOLS:
             config = RunConfig.create(scene, T=T0, x0=x0, v0=v0, cells=4, degree=4, rtol=rtol,
@@ -845,7 +845,7 @@ def _below_centre(scene, has: Energy, x: np.ndarray, energy: float, reached: flo
         found = root(scene.force_numpy, x.mean(axis=0), tol=1e-13)
     if not found.success or not np.all(np.isfinite(found.x)):
         return
-    from fem_dual.base_state import force_jacobian
+    from fem_dual.slab.base_state import force_jacobian
 
     with np.errstate(all="ignore"):
         stiffness = -force_jacobian(scene.force_numpy, found.x)

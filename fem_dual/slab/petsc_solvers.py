@@ -1,5 +1,5 @@
 """PETSc solvers of one slab. A linear scene gets one KSP (matrix assembled and factored once while
-the slab length stays the same); a nonlinear scene gets PETSc SNES (see fem_dual.newton).
+the slab length stays the same); a nonlinear scene gets PETSc SNES (see fem_dual.slab.snes).
 
 Options are a dict applied under a per-solver prefix (`dual_<scene>_`) while the solver is set up
 and while it solves, and removed in between, so solvers never leak settings into each other.
@@ -24,7 +24,7 @@ from fem_dual.compat import destroy_petsc
 from fem_dual.errors import InputError, SolveError
 from fem_dual.petsc_check import (check_user_options, last_line, require_used, solver_prefix,
                                   user_options)
-from fem_dual.problem import SlabProblem
+from fem_dual.slab.problem import SlabProblem
 
 __all__ = ["LINEAR_DEFAULTS", "direct_solver", "solver_prefix", "petsc_options", "SolverOptions",
            "CompiledSlab", "LinearSlabSolver", "check_true_residual", "TRUE_RESIDUAL_TOL"]

@@ -32,14 +32,14 @@ from petsc4py import PETSc
 from fem_dual.compat import (CellPointEvaluator, destroy_petsc, vector_space,
                              vector_space_dg1)
 from fem_dual.errors import SolveError
-from fem_dual.pointwise import PointwiseDtP
+from fem_dual.slab.pointwise_dtp import PointwiseDtP
 from fem_dual.mpi import gather_rows
-from fem_dual.problem import SlabProblem
+from fem_dual.slab.problem import SlabProblem
 
 __all__ = ["VertexValues", "VertexSampler", "CellMomenta", "RECOVERIES", "times_last"]
 
 from fem_dual.choices import RECOVERIES  # noqa: E402 -- validated in config
-from fem_dual.values import VertexValues, times_last  # noqa: E402,F401 -- light, re-exported
+from fem_dual.slab.values import VertexValues, times_last  # noqa: E402,F401 -- light, re-exported
 
 
 class CellMomenta:

@@ -18,8 +18,8 @@ import numpy as np
 
 from fem_dual.errors import SolveError
 from fem_dual.mpi import bcast
-from fem_dual.problem import SlabProblem
-from fem_dual.recovery import VertexSampler, VertexValues
+from fem_dual.slab.problem import SlabProblem
+from fem_dual.slab.recovery import VertexSampler, VertexValues
 
 __all__ = ["Superposition", "check_slab_map", "stable_or_raise", "first", "select", "refused", "checked",
            "share"]

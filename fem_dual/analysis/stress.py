@@ -20,9 +20,9 @@ import numpy as np
 from mpi4py import MPI
 
 from fem_dual.config import RunConfig
-from fem_dual.driver import RunResult, Simulation
+from fem_dual.integrate.simulation import RunResult, Simulation
 from fem_dual.errors import InputError, SolveError
-from fem_dual.flutter import critical_load, eigen_rate, growth_rate
+from fem_dual.analysis.flutter import critical_load, eigen_rate, growth_rate
 from fem_dual.scenes.column import lowest_mode, scaled_column
 
 __all__ = ["Case", "Row", "CASES", "run_case", "stress", "table"]

@@ -13,12 +13,12 @@ from typing import Any, Dict, List, Optional, Tuple
 import numpy as np
 
 from fem_dual.config import RunConfig
-from meshes import SlabSchedule
+from fem_dual.meshes import SlabSchedule
 from fem_dual.errors import InputError
 from fem_dual.output import (XdmfSeries, lock_directory, series_files, write_polyline,
                              written_by_us)
-from fem_dual.recovery import VertexValues
-from fem_dual.stepper import SlabEstimate
+from fem_dual.slab.recovery import VertexValues
+from fem_dual.integrate.estimate import SlabEstimate
 
 __all__ = ["AcceptedSlab", "SlabBatch", "PartialBatch", "Accumulator", "XdmfSink", "ProgressSink", "run_identity",
            "Restart"]
@@ -49,7 +49,7 @@ class PartialBatch(Exception):
 @dataclass
 class SlabBatch:
     """Consecutive accepted slabs in arrays with a leading slab axis (rank 0): what a linear
-    scene's slab maps produce at once (fem_dual.driver), and what the sinks take."""
+    scene's slab maps produce at once (fem_dual.integrate.simulation), and what the sinks take."""
 
     first: int  # index of the first slab
     t0: np.ndarray  # (slabs,)

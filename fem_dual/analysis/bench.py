@@ -28,7 +28,7 @@ from mpi4py import MPI
 from scipy.integrate import solve_ivp
 
 from fem_dual.config import RunConfig
-from fem_dual.driver import Simulation
+from fem_dual.integrate.simulation import Simulation
 from fem_dual.errors import InputError, SolveError
 from fem_dual.scenes import Scene
 

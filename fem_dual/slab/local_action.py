@@ -1,6 +1,6 @@
 """One slab's dual action assembled from the pointwise derivatives of its density.
 
-The action of a slab (fem_dual.problem) is S[w] = int_0^1 l(U, U_s) ds + (initial terms at
+The action of a slab (fem_dual.slab.problem) is S[w] = int_0^1 l(U, U_s) ds + (initial terms at
 s = 0), with l = L_d dt the density, U = w and U_s = dw/ds at a point. Its residual and
 Jacobian are
 
@@ -31,7 +31,7 @@ from scipy.linalg import lapack
 
 from fem_dual.compat import CellPointEvaluator
 from fem_dual.quiet import _quiet, quiet_numpy  # noqa: F401 (quiet_numpy: re-exported)
-from fem_dual.problem import SlabProblem
+from fem_dual.slab.problem import SlabProblem
 
 __all__ = ["LocalAction", "BandedLU", "quiet_numpy"]
 
@@ -182,7 +182,7 @@ class LocalAction:
         self._pair_index = (np.array([k for k, _ in pairs], dtype=np.int64),  # the Hessian's
                             np.array([l for _, l in pairs], dtype=np.int64))  # row, column
         # d grad / d zbar for the exact tangents, compiled now (with the rest: under MPI every
-        # rank holds the slab, and rank 0 compiles first, see fem_dual.driver.Simulation)
+        # rank holds the slab, and rank 0 compiles first, see fem_dual.integrate.simulation.Simulation)
         self._base_derivative: Optional[CellPointEvaluator] = None
         if p.Zbar is not None:
             G = ufl.diff(ufl.as_vector(flat_grad), p.Zbar)
@@ -299,7 +299,7 @@ class LocalAction:
                                               or p.pointwise.Ginv is not None):
             self._native_newton = NativeNewton(self)
 
-        # the momenta at the cell ends (fem_dual.recovery): the cell residual at the vertex
+        # the momenta at the cell ends (fem_dual.slab.recovery): the cell residual at the vertex
         # basis functions (local dofs 0 and 1 sit at reference points 0 and 1), signed by the
         # cell's orientation
         left_first = (ends[:, 0] < ends[:, 1])[:, None]
@@ -307,7 +307,7 @@ class LocalAction:
         self._Tg_ends = np.ascontiguousarray(self._Tg[:, :2])  # (the vertex basis functions)
         self._n2 = n2
 
-        # the vertices of the cell ends, in the order of s (fem_dual.recovery's vertex order)
+        # the vertices of the cell ends, in the order of s (fem_dual.slab.recovery's vertex order)
         _, vertex, counts = np.unique(ends.ravel(), return_inverse=True, return_counts=True)
         # the mean of the one-sided values at each vertex: (vertices, cells * 2)
         self._vertex_mean = np.zeros((len(counts), 2 * cell_count))
@@ -322,7 +322,7 @@ class LocalAction:
         self._tangent_at: Optional[tuple] = None  # (state, LU, tangent matrix)
         self._factors_at: Optional[tuple] = None  # (version, state, factors of J there)
         # whether a compiled Newton factors the Jacobian at its solution for the tangents (an
-        # error companion, which takes none, does without: fem_dual.driver.Simulation)
+        # error companion, which takes none, does without: fem_dual.integrate.simulation.Simulation)
         self.factor_solution = True
         self._mass_at: Optional[tuple] = None  # (M, M^-1, d initial rows / d z0, M^-1's C)
 
@@ -510,7 +510,7 @@ class LocalAction:
     @_quiet
     def momenta(self) -> np.ndarray:
         """(cells, 2, 2n): x^ then M v^ at reference points 0 and 1 of each cell, from the
-        cell residuals of the current state (fem_dual.recovery.CellMomenta, without the form
+        cell residuals of the current state (fem_dual.slab.recovery.CellMomenta, without the form
         assembly)."""
         from fem_dual.errors import SolveError
 
@@ -592,7 +592,7 @@ class LocalAction:
         vertex change of one more Newton step: (vertices, 2n)) at the current state, for all 2n
         unit changes of the start state and the Newton step at once (one banded solve with
         2n + 1 right-hand sides: the tangent along the estimate's error, the volume check of
-        fem_dual.driver and the algebraic error then cost a product and a determinant)."""
+        fem_dual.integrate.simulation and the algebraic error then cost a product and a determinant)."""
         p = self.problem
         n, bs, cells, nq = p.n, self.bs, len(self.cells), self.nq
         K = 2 * n
@@ -687,7 +687,7 @@ class LocalAction:
 class NativeNewtonResult:
     """How a compiled Newton (NativeNewton.run) ended: SNES's reason name, the last iterate
     and its residual, the residual history, the last step's factors (None without a step),
-    the backward floor (fem_dual.newton.backward_floor) at the last factored iterate and the
+    the backward floor (fem_dual.slab.snes.backward_floor) at the last factored iterate and the
     last step's size relative to the iterate."""
 
     reason: str
@@ -705,7 +705,7 @@ _REASONS = {1: "CONVERGED_FNORM_ABS", 2: "CONVERGED_FNORM_RELATIVE",
 
 
 class NativeNewton:
-    """The Newton iteration of fem_dual.pointwise_newton.PointwiseNewtonSolver in compiled code
+    """The Newton iteration of fem_dual.slab.pointwise_newton.PointwiseNewtonSolver in compiled code
     (fem_dual.native's fem_dual_slab_newton), an implicit DtP map solved inside each
     evaluation (_ImplicitMap): the same evaluations, band, banded Cholesky and tests, while
     every full step is taken; where the line search would shorten a step, or a factorisation,
@@ -829,13 +829,13 @@ class NativeNewton:
 
 
 class _ImplicitMap:
-    """What NativeNewton's C loop needs to solve an implicit DtP map (fem_dual.pointwise.
+    """What NativeNewton's C loop needs to solve an implicit DtP map (fem_dual.slab.pointwise_dtp.
     PointwiseDtP) inside each evaluation: its expression's packed rows, where the dual state,
     X and G_x^-1 sit in them and in the density's rows, as a fem_dual_dtp struct."""
 
     def __init__(self, newton: "NativeNewton", free: np.ndarray):
         from fem_dual import native
-        from fem_dual.pointwise import BRANCH_TOL, LAST_STEP, MAX_IT
+        from fem_dual.slab.pointwise_dtp import BRANCH_TOL, LAST_STEP, MAX_IT
 
         local, ffi = newton.local, newton.ffi
         p = local.problem

@@ -22,7 +22,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from fem_dual.errors import InputError
-from fem_dual.values import VertexValues, times_last
+from fem_dual.slab.values import VertexValues, times_last
 from fem_dual.scenes.base import is_spd
 from fem_dual.scenes.linear import LinearScene
 
@@ -37,7 +37,7 @@ class ModalScene(LinearScene):
 
     name: ClassVar[str] = "modal"
     default_T: ClassVar[float] = 1.0
-    summary: ClassVar[str] = "a linear scene in modal coordinates (built by fem_dual.modal)"
+    summary: ClassVar[str] = "a linear scene in modal coordinates (built by fem_dual.slab.modal)"
 
     Kr: tuple = ()
     Dr: tuple = ()

@@ -96,7 +96,7 @@ class FlowPredictor:
     read at the times t by the cubic Hermite of the step ends (O(h^4), as the steps). The last
     run is kept within a run of the slab loop: its repeated starts of a slab (tangents, Newton
     probes) read it again without stepping. The error companion steps its own, with twice the
-    steps (fem_dual.driver.Simulation.companion).
+    steps (fem_dual.integrate.simulation.Simulation.companion).
 
     The steps run in compiled code (fem_dual.native) on the scene's UFL force compiled by FFCx,
     where a C compiler is found (`compiled`); else in numpy on the scene's `force_numpy`.
@@ -310,11 +310,11 @@ def grows_within(scene, x0: np.ndarray, dt: float) -> bool:
 def stiff_at_start(scene, x0: np.ndarray, v0: np.ndarray) -> bool:
     """Whether a nonlinear scene is stiff at its start: the fastest frequency of the force
     linearised there, sqrt |eig(M^-1 dF/dx)|, exceeds STIFF_RATIO times the start's own rate
-    (fem_dual.stepper.motion_rate), so that slabs sized by the motion leave modes unresolved,
+    (fem_dual.integrate.estimate.motion_rate), so that slabs sized by the motion leave modes unresolved,
     and those modes oscillate: a fast mode that grows (an eigenvalue of M^-1 dF/dx that is not
     negative, beyond the same rate) must be followed, not damped by the predictor, so the start
     is not called stiff (curl3d at x = (1e3, 0, 0) grows at 38 per unit of time)."""
-    from fem_dual.stepper import motion_rate
+    from fem_dual.integrate.estimate import motion_rate
 
     a0 = np.linalg.solve(scene.mass_matrix(), scene.force_numpy(x0))
     mu = _linearised_modes(scene, x0)

@@ -8,29 +8,29 @@ default `~/.cache/fem-dual`), calls that kernel inside its loops. Where no compi
 
 What it holds:
 - `rk4`: classical Runge-Kutta in Nystrom form, the loop of
-  fem_dual.base_state.FlowPredictor (the same stages and sums), with the force from its kernel,
+  fem_dual.slab.base_state.FlowPredictor (the same stages and sums), with the force from its kernel,
   and (`hermite`) its cubic Hermite read at the slab's nodes.
-- `band`: the Jacobian's band of fem_dual.local_action.LocalAction from the Hessian of the
+- `band`: the Jacobian's band of fem_dual.slab.local_action.LocalAction from the Hessian of the
   density at the quadrature points: the products of each Hessian group with its basis table and
   their scatter into the band, in one pass (numpy: a gather, a matrix product per group, a
   gather and a bincount).
-- `dtp_newton`: the Newton iteration of fem_dual.pointwise.PointwiseDtP (an implicit DtP map
+- `dtp_newton`: the Newton iteration of fem_dual.slab.pointwise_dtp.PointwiseDtP (an implicit DtP map
   solved at every point), the same steps and stopping rule, with G and G_x from the kernel of
   its expression (`PackedExpression` packs that kernel's coefficients as DOLFINx does).
-- `slab_newton`: a slab's Newton of fem_dual.pointwise_newton (the residual and band of
-  fem_dual.local_action from the kernel of the density's gradient and Hessian, the implicit
+- `slab_newton`: a slab's Newton of fem_dual.slab.pointwise_newton (the residual and band of
+  fem_dual.slab.local_action from the kernel of the density's gradient and Hessian, the implicit
   DtP map solved inside each evaluation, the step by the banded Cholesky below), while every
   full step is taken; the numpy iteration decides the rest (line search, failures), so those
   rules live in one place.
 - `band_cholesky`, `band_solve`: the banded Cholesky factorisation in LAPACK's storage (dpbtrf's
-  with uplo = 'U') and its solves, for every banded Jacobian (fem_dual.local_action.BandedLU):
+  with uplo = 'U') and its solves, for every banded Jacobian (fem_dual.slab.local_action.BandedLU):
   twice the reference LAPACK's speed on these bands.
 - `tangents`: the exact tangents of a solved slab after their banded solve
-  (fem_dual.local_action.LocalAction._tangent_matrix): the solved unknowns through the
+  (fem_dual.slab.local_action.LocalAction._tangent_matrix): the solved unknowns through the
   density's Hessian to the momenta at the cell ends (numpy: a dozen batched products).
 - `estimate`: a slab's error estimate from the answer's and the companion's vertex values
-  (fem_dual.driver._estimates; numpy: some twenty array operations a slab).
-- `summary`: what the run's accumulator keeps of accepted slabs (fem_dual.sinks.Accumulator:
+  (fem_dual.integrate.simulation._estimates; numpy: some twenty array operations a slab).
+- `summary`: what the run's accumulator keeps of accepted slabs (fem_dual.integrate.sinks.Accumulator:
   their reported errors, peaks, the drift of H_d; numpy: some twenty array operations).
 - `pack`: the gather of a compiled expression's coefficients into its kernel's rows
   (`PackedExpression.pack`; numpy: a gather and a copy per coefficient).
@@ -116,7 +116,7 @@ void fem_dual_band(int cells, int nq, int ncols, const double *out, int npairs,
 }
 
 /* x = A^-1 b for one n x n matrix (row-major; n = 2 by the closed form of
-   fem_dual.pointwise._solve, else Gaussian elimination with partial pivoting). A is kept. */
+   fem_dual.slab.pointwise_dtp._solve, else Gaussian elimination with partial pivoting). A is kept. */
 static void small_solve(int n, const double *A, const double *b, double *x, double *work)
 {
     int i, j, k, piv;
@@ -206,8 +206,8 @@ int fem_dual_dtp_newton(uintptr_t kernel, int cells, int points, int n, int wsiz
     return 2;
 }
 
-/* One slab's Newton on the pointwise assembly of fem_dual.local_action.LocalAction (an
-   explicit DtP map): the iteration of fem_dual.pointwise_newton.PointwiseNewtonSolver.solve
+/* One slab's Newton on the pointwise assembly of fem_dual.slab.local_action.LocalAction (an
+   explicit DtP map): the iteration of fem_dual.slab.pointwise_newton.PointwiseNewtonSolver.solve
    while every full step lowers the residual enough. Each evaluation puts the free unknowns x
    into the dual state's columns of the packed rows (wslot, wfree: -1 keeps the packed value,
    a Dirichlet one), calls the kernel of the density's gradient and Hessian on every cell into
@@ -225,7 +225,7 @@ int fem_dual_dtp_newton(uintptr_t kernel, int cells, int points, int n, int wsiz
    *final_factored 1 where it is positive definite), 1 where the numpy iteration must decide (a
    residual that is not finite, a Jacobian that is not positive definite, a step that is not
    finite or that the line search would shorten): x is then undefined. */
-/* An implicit DtP map (fem_dual.pointwise.PointwiseDtP) solved inside each evaluation: the
+/* An implicit DtP map (fem_dual.slab.pointwise_dtp.PointwiseDtP) solved inside each evaluation: the
    dual state's values into its packed rows (wslot, wfree), its Newton (fem_dual_dtp_newton)
    from the last root X, the branch test and G_x^-1 into Ginv, then X's and Ginv's values into
    the density's rows (both_*: nx and ng columns a row, from X[both_xindex], Ginv[...]). */
@@ -338,7 +338,7 @@ static int on_branch(int n, const double *A, double tol, double *work)
     return 1;
 }
 
-/* inv = A^-1 (n x n, row-major): the closed form of fem_dual.pointwise._inverse for n = 2,
+/* inv = A^-1 (n x n, row-major): the closed form of fem_dual.slab.pointwise_dtp._inverse for n = 2,
    else Gauss-Jordan with partial pivoting. work: 2 n n doubles. */
 static void small_inverse(int n, const double *A, double *inv, double *work)
 {
@@ -637,7 +637,7 @@ void fem_dual_tangents(int cells, int nq, int nd, int bs, int n, int k1, const d
     }
 }
 
-/* fem_dual.driver._estimates of S slabs of V vertices (states of m = 2n components, x then
+/* fem_dual.integrate.simulation._estimates of S slabs of V vertices (states of m = 2n components, x then
    v; z, zc the answer's and the companion's, contiguous): local = ((zc - z) + alg) safety, plus
    lost from the second vertex on; glob = local + psi (written only where psi is given); the
    error weights' running scales (the largest |x| and |v| so far, from scale_x and scale_v; a
@@ -699,7 +699,7 @@ int fem_dual_estimate(int S, int V, int n, const double *z, const double *zc,
     return 0;
 }
 
-/* fem_dual.sinks.Accumulator's summaries of S accepted slabs of V vertices (m = 2n state
+/* fem_dual.integrate.sinks.Accumulator's summaries of S accepted slabs of V vertices (m = 2n state
    components; glob, local (S, V, m), H (S, V) and floor (S, 2) contiguous): the reported
    error of a vertex, max(max |glob| over a part's components, the part's floor), and of it
    rows[r] (the larger part) and peak[part] over the kept vertices (all but each slab's first,

@@ -11,7 +11,7 @@ a sum of products (1D time matrix) x (n x n coefficient matrix). The 1D matrices
 s in [0, 1], dofs ordered by s, so banded) are S = int phi_i' phi_j', C = int phi_i' phi_j,
 G = C^T, Mm = int phi_i phi_j, e = int phi_i', m = int phi_i; the same formula with the element
 matrices of one cell gives the cell residuals that carry the momenta x^, M v^ at the cell ends
-(the superconvergent recovery of fem_dual.recovery). Nothing is compiled per n: this is the path
+(the superconvergent recovery of fem_dual.slab.recovery). Nothing is compiled per n: this is the path
 for columns of hundreds of links, where the forms path would unroll n x n constants in FFCx.
 
 The action is convex: CG, preconditioned by the exact inverse of the symmetric, undamped,
@@ -34,9 +34,9 @@ from scipy import sparse
 from scipy.sparse import csgraph
 
 from fem_dual.errors import SolveError
-from fem_dual.recovery import VertexValues, times_last
-from fem_dual.solvers import check_true_residual
-from fem_dual.superposition import checked, first, refused, select, share, stable_or_raise
+from fem_dual.slab.recovery import VertexValues, times_last
+from fem_dual.slab.petsc_solvers import check_true_residual
+from fem_dual.slab.superposition import checked, first, refused, select, share, stable_or_raise
 
 __all__ = ["TimeMatrices", "KroneckerProblem", "KroneckerSolver", "KroneckerSampler",
            "KroneckerSuperposition", "KRONECKER_DEFAULTS"]
@@ -240,7 +240,7 @@ class KroneckerSolver:
 
     def __init__(self, problem: KroneckerProblem, prefix: str,
                  overrides: Optional[Mapping[str, str]] = None):
-        from fem_dual.solvers import SolverOptions
+        from fem_dual.slab.petsc_solvers import SolverOptions
 
         self.problem = p = problem
         comm = p.comm
@@ -514,7 +514,7 @@ def probes(blocks: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
 
 
 class KroneckerSuperposition:
-    """Slabs of a Kronecker problem from its 2n unit start states (see fem_dual.superposition):
+    """Slabs of a Kronecker problem from its 2n unit start states (see fem_dual.slab.superposition):
     x, v, xi, eta at the vertices are linear in z = (x0, v0), H_d follows from them. A problem
     that decouples into blocks (modal coordinates) solves 2 x its largest block probes
     (`probes`) instead of the 2n unit start states."""

@@ -20,30 +20,30 @@ from typing import Any, Dict, List, Optional, Tuple
 import numpy as np
 from mpi4py import MPI
 
-from fem_dual.base_state import FlowPredictor
+from fem_dual.slab.base_state import FlowPredictor
 from fem_dual.compat import quiet_jit_logging
 from fem_dual.config import STAGING_LIMIT, RunConfig
-from fem_dual.dense import GAP_ORDER, hermite_at, hermite_estimate, slab_interpolation_gaps
+from fem_dual.integrate.dense import GAP_ORDER, hermite_at, hermite_estimate, slab_interpolation_gaps
 from fem_dual.errors import InputError, SolveError
-from fem_dual.modal import ModalBasis
-from fem_dual.kronecker import (KroneckerProblem, KroneckerSampler, KroneckerSolver,
+from fem_dual.slab.modal import ModalBasis
+from fem_dual.slab.kronecker import (KroneckerProblem, KroneckerSampler, KroneckerSolver,
                                 KroneckerSuperposition)
 from fem_dual.mpi import allreduce, bcast, input_on_root, root_first
 from fem_dual.output import check_output_dir_on_root
-from fem_dual.sinks import (AcceptedSlab, Accumulator, PartialBatch, ProgressSink, Restart,
+from fem_dual.integrate.sinks import (AcceptedSlab, Accumulator, PartialBatch, ProgressSink, Restart,
                             SlabBatch, XdmfSink)
 from fem_dual import faults, native
 from fem_dual.quiet import quiet_numpy
-from fem_dual.newton import NO_PROGRESS_ITS, NewtonSlabSolver
-from fem_dual.pointwise_newton import PointwiseLinearSolver, PointwiseNewtonSolver
-from fem_dual.problem import SlabProblem
-from fem_dual.recovery import VertexSampler, VertexValues
-from fem_dual.solvers import LinearSlabSolver, solver_prefix
-from fem_dual.superposition import Superposition
-from fem_dual.stepper import (ESTIMATE_SAFETY, ROUNDOFF_REL, VOLUME_TOL, ErrorWeights,
+from fem_dual.slab.snes import NO_PROGRESS_ITS, NewtonSlabSolver
+from fem_dual.slab.pointwise_newton import PointwiseLinearSolver, PointwiseNewtonSolver
+from fem_dual.slab.problem import SlabProblem
+from fem_dual.slab.recovery import VertexSampler, VertexValues
+from fem_dual.slab.petsc_solvers import LinearSlabSolver, solver_prefix
+from fem_dual.slab.superposition import Superposition
+from fem_dual.integrate.estimate import (ESTIMATE_SAFETY, ROUNDOFF_REL, VOLUME_TOL, ErrorWeights,
                               SlabEstimate, initial_fraction, motion_rate, step_factor,
                               step_factors, volume_defect)
-from meshes import SlabSchedule
+from fem_dual.meshes import SlabSchedule
 
 __all__ = ["RunResult", "Simulation", "AcceptedSlab", "run"]
 
@@ -87,7 +87,7 @@ class RunResult:
 
     def at(self, times) -> Tuple[np.ndarray, np.ndarray]:
         """(x, v) at any times within the computed part of [0, T], by quintic Hermite
-        interpolation with the equation of motion at the vertices (fem_dual.dense)."""
+        interpolation with the equation of motion at the vertices (fem_dual.integrate.dense)."""
         times = np.atleast_1d(np.asarray(times, dtype=float))
         if len(times) == 0:
             n = self.x.shape[1]
@@ -185,14 +185,14 @@ class Simulation:
         recovery: how the primal state is read from the dual solution ("momentum" or "dtp").
         kronecker: linear scenes: solve in Kronecker form (matrix-free CG).
         with_dual: also sample the dual fields (output); the error companion does without.
-        base: the base state of H on a slab (fem_dual.problem.BASES).
-        modal: linear scenes: solve in modal coordinates (fem_dual.modal); a ModalBasis is
+        base: the base state of H on a slab (fem_dual.slab.problem.BASES).
+        modal: linear scenes: solve in modal coordinates (fem_dual.slab.modal); a ModalBasis is
             shared (the error companion uses its partner's).
         mesh: the slab mesh to share (the companion uses its partner's).
         shared_predictor: the base state's predictor to use (the companion's: a linearised
             predictor is its partner's, an rk4 one its own with twice the steps).
         pointwise: assemble pointwise and solve by the banded LU or dense Newton of
-            fem_dual.pointwise_newton (every rank solves the whole slab), not by PETSc KSP or
+            fem_dual.slab.pointwise_newton (every rank solves the whole slab), not by PETSc KSP or
             SNES on forms distributed over `comm`; None: unless PETSc options are given.
     """
 
@@ -280,7 +280,7 @@ class Simulation:
 
     def basis_solves(self) -> int:
         """Slab solves that a basis of one slab length costs (2n, or fewer probes when the
-        solved problem decouples into modes: fem_dual.kronecker.probes)."""
+        solved problem decouples into modes: fem_dual.slab.kronecker.probes)."""
         if self.kronecker:
             return KroneckerSuperposition.solves_per_basis(self.problem)
         return 2 * self.scene.n
@@ -745,14 +745,14 @@ def _volume_kept(comm: MPI.Comm, sim: Simulation, z: np.ndarray, t0: float, dt: 
     (forms) has none, so there its 2n columns are difference tangents of the solved slab (a
     residual and a solve each: `curl3d --x0 1e3,0,0 --v0 0,1e-9,0 --cells 8 --assembly forms`
     ended ok 444 off with an estimate of 1.6e-8 without them). On the predictor base, which
-    damps the fast oscillations the cells do not resolve by design (fem_dual.base_state),
+    damps the fast oscillations the cells do not resolve by design (fem_dual.slab.base_state),
     only slabs over which a mode of the linearised motion grows by more than e are judged (it
     damped a saddle's growth too: `force --F 1e4*x --x0 1 --v0 -100 --T 0.15 --base
     predictor` ended ok 13 off with an estimate of 2e-3). On the rk4 base the exact tangent
     holds the base (its own change moves the answer by the discretisation error only).
     Collective."""
     if sim.base == "predictor":
-        from fem_dual.base_state import grows_within
+        from fem_dual.slab.base_state import grows_within
 
         if not grows_within(sim.scene, z[:sim.scene.n], dt):
             return "accept", err, ""

@@ -20,7 +20,7 @@ class VertexValues:
     hamiltonian: np.ndarray
     xi: Optional[np.ndarray] = None
     eta: Optional[np.ndarray] = None
-    # where the sampler made them so (fem_dual.recovery), x and v are views of z (..., vertices,
+    # where the sampler made them so (fem_dual.slab.recovery), x and v are views of z (..., vertices,
     # 2n), and every sampled array a view of block (..., vertices, columns: s, x, v, H_d, then
     # xi and eta): one array operation instead of one per part
     z: Optional[np.ndarray] = None

@@ -19,9 +19,9 @@ from petsc4py import PETSc
 from fem_dual.compat import destroy_petsc
 from fem_dual.errors import SolveError
 from fem_dual.quiet import quiet_numpy
-from fem_dual.problem import SlabProblem
-from fem_dual.solvers import CompiledSlab, SolverOptions, direct_solver
-from fem_dual.stepper import stalled
+from fem_dual.slab.problem import SlabProblem
+from fem_dual.slab.petsc_solvers import CompiledSlab, SolverOptions, direct_solver
+from fem_dual.integrate.estimate import stalled
 
 __all__ = ["NEWTON_DEFAULTS", "NewtonSlabSolver", "NO_PROGRESS_ITS", "RESIDUAL_ROUNDOFF",
            "difference_step", "residual_size"]

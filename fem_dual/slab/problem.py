@@ -21,12 +21,12 @@ from dolfinx import fem
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from fem_dual.base_state import RK4_STEPS_PER_NODE, predictor
+from fem_dual.slab.base_state import RK4_STEPS_PER_NODE, predictor
 from fem_dual.compat import constant, release_function_vector, vector_space
-from fem_dual.pointwise import PointwiseDtP
+from fem_dual.slab.pointwise_dtp import PointwiseDtP
 from fem_dual.scenes.base import Scene
-from forms.predual import boundary_term, dual_hamiltonian, predual_lagrangian
-from meshes import START, slab_mesh
+from fem_dual.forms.predual import boundary_term, dual_hamiltonian, predual_lagrangian
+from fem_dual.meshes import START, slab_mesh
 
 __all__ = ["SlabProblem", "BASES"]
 
@@ -35,7 +35,7 @@ __all__ = ["SlabProblem", "BASES"]
 # of the base state enters the slab action: a constant start state leaves the residual
 # (-v0, -F(x0)/m), an O(omega) forcing that modes the cells do not resolve turn into growth;
 # zero is an exact solution of a linear system, and its slab map damps unresolved modes.
-# "predictor" (fem_dual.base_state) is a function of time near the motion with a small residual;
+# "predictor" (fem_dual.slab.base_state) is a function of time near the motion with a small residual;
 # "rk4" one closer still, for motions that are not stiff (explicit Runge-Kutta).
 from fem_dual.choices import BASES  # noqa: E402 -- named here, validated in config
 
@@ -52,7 +52,7 @@ class SlabProblem:
         mesh: a slab mesh of `cells` cells to share (the error companion uses its partner's,
             so that its Newton can start from the partner's solution).
         shared_predictor: the predictor of a base state that is a function of time, to use
-            instead of a new one (fem_dual.driver.Simulation.companion).
+            instead of a new one (fem_dual.integrate.simulation.Simulation.companion).
     """
 
     def __init__(self, scene: Scene, degree: int, cells: int, comm: MPI.Comm = MPI.COMM_WORLD,
@@ -105,7 +105,7 @@ class SlabProblem:
 
         # The dual fields at a point, U = w, and their derivatives in s, Us = dw/ds, are UFL
         # variables: the forms differentiate through them (ufl.derivative in w), and the
-        # pointwise assembly (fem_dual.local_action) differentiates the density in them.
+        # pointwise assembly (fem_dual.slab.local_action) differentiates the density in them.
         w, bs = self.w, 2 * n + extra
         self.U = U = ufl.variable(ufl.as_vector([w[i] for i in range(bs)]))
         self.Us = Us = ufl.variable(ufl.as_vector([w[i].dx(0) for i in range(bs)]))
@@ -175,11 +175,11 @@ class SlabProblem:
                                  self.vb, damping)
         return xhat, vhat, L_d
 
-    mu = None  # an unfolding damping -mu M v (fem_dual.orbit); slabs have none
+    mu = None  # an unfolding damping -mu M v (fem_dual.analysis.orbit); slabs have none
     predictor = None  # a base state that is a function of time (orbits have none)
     _taken: Optional[tuple] = None  # (partner, its basis at our nodes, dofmaps)
     # bumped whenever a constant changes (start state, slab, parameters): a solver that saw the
-    # same dual state at the same version has the same DtP image (fem_dual.newton)
+    # same dual state at the same version has the same DtP image (fem_dual.slab.snes)
     version = 0
 
     def damping(self):

@@ -1,7 +1,7 @@
-"""Newton on one slab's dual action, assembled pointwise (fem_dual.local_action): the default
+"""Newton on one slab's dual action, assembled pointwise (fem_dual.slab.local_action): the default
 solver of nonlinear slabs.
 
-The same iteration as the PETSc SNES of fem_dual.newton with its defaults (newtonls with a
+The same iteration as the PETSc SNES of fem_dual.slab.snes with its defaults (newtonls with a
 backtracking line search, relative residual and step tests, the same give-up rule under
 --rtol, the same round-off acceptance), without PETSc: the residual and the banded Jacobian come
 from one expression evaluation each and the Newton step from LAPACK's banded LU. That solver
@@ -16,12 +16,12 @@ from typing import List, Mapping, Optional
 import numpy as np
 
 from fem_dual.errors import SolveError
-from fem_dual.local_action import BandedLU, LocalAction, _quiet
-from fem_dual.newton import (NEWTON_DEFAULTS, NO_PROGRESS_RATIO, RESIDUAL_ROUNDOFF,
+from fem_dual.slab.local_action import BandedLU, LocalAction, _quiet
+from fem_dual.slab.snes import (NEWTON_DEFAULTS, NO_PROGRESS_RATIO, RESIDUAL_ROUNDOFF,
                              backward_floor, difference_step, residual_size,
                              round_off_floor)
-from fem_dual.problem import SlabProblem
-from fem_dual.stepper import stalled
+from fem_dual.slab.problem import SlabProblem
+from fem_dual.integrate.estimate import stalled
 
 __all__ = ["PointwiseNewtonSolver"]
 
@@ -67,7 +67,7 @@ class _PointwiseSolver:
 
 class PointwiseNewtonSolver(_PointwiseSolver):
     """Newton on the residual of one slab; per-slab iteration counts and residual histories,
-    like fem_dual.newton.NewtonSlabSolver (the driver uses either).
+    like fem_dual.slab.snes.NewtonSlabSolver (the driver uses either).
 
     Args:
         problem: the slab problem (on a mesh of one process).
@@ -239,7 +239,7 @@ class PointwiseNewtonSolver(_PointwiseSolver):
 
     def tangent(self, z0: np.ndarray, dz: np.ndarray, relative: float = 1e-6,
                 scale: Optional[float] = None) -> float:
-        """As fem_dual.newton.NewtonSlabSolver.tangent: leaves the problem at start state
+        """As fem_dual.slab.snes.NewtonSlabSolver.tangent: leaves the problem at start state
         z0 + eps dz with the dual state w + eps dw, J dw = -dR/dz dz, and returns eps."""
         p, n = self.problem, self.problem.n
         z1, eps = difference_step(z0, dz, relative, scale)
@@ -252,7 +252,7 @@ class PointwiseNewtonSolver(_PointwiseSolver):
     @property
     def exact_tangents(self) -> bool:
         """Whether `exact_tangent` applies: a base state that is a constant, or the flow
-        predictor's, held (fem_dual.local_action.LocalAction.vertex_tangent)."""
+        predictor's, held (fem_dual.slab.local_action.LocalAction.vertex_tangent)."""
         return self.problem.Zbar is not None or self.problem.base == "rk4"
 
     def _linearised(self, what, *args):
@@ -266,7 +266,7 @@ class PointwiseNewtonSolver(_PointwiseSolver):
 
     def exact_tangent(self, dz: np.ndarray) -> np.ndarray:
         """d(x, v)/dz0 . dz at the vertices (vertices, 2n) of the converged slab, exactly
-        (fem_dual.local_action.LocalAction.vertex_tangent): no difference step, no error of
+        (fem_dual.slab.local_action.LocalAction.vertex_tangent): no difference step, no error of
         its own."""
         return self._linearised(self.local.vertex_tangent, dz)[0]
 
@@ -307,8 +307,8 @@ class PointwiseNewtonSolver(_PointwiseSolver):
 
 class PointwiseLinearSolver(_PointwiseSolver):
     """One banded LU solve per slab of a linear scene's quadratic dual action, J w = -R(0),
-    assembled pointwise (fem_dual.local_action): the default for linear scenes on their UFL
-    forms (fem_dual.solvers.LinearSlabSolver is the PETSc KSP of `--assembly forms`). J does
+    assembled pointwise (fem_dual.slab.local_action): the default for linear scenes on their UFL
+    forms (fem_dual.slab.petsc_solvers.LinearSlabSolver is the PETSc KSP of `--assembly forms`). J does
     not depend on the start or base state: it is assembled and factored again only when the
     slab length changes (or `reset`)."""
 
@@ -354,7 +354,7 @@ class PointwiseLinearSolver(_PointwiseSolver):
     def condition_estimate(self, iterations: int = 60) -> float:
         """lambda_max / lambda_min of the slab matrix (SPD) on the free unknowns, by power
         iteration on it and on its inverse (the factors of the last solve), as
-        fem_dual.solvers.LinearSlabSolver's."""
+        fem_dual.slab.petsc_solvers.LinearSlabSolver's."""
         from scipy import sparse
 
         if self._assembled_dt != float(self.problem.dt.value):

@@ -1,5 +1,5 @@
 """The input of `fem-dual orbit` that is checked before anything heavy is imported: the mode,
-the continuation, the resolution of the guess, and the energy of a scene (fem_dual.orbit builds
+the continuation, the resolution of the guess, and the energy of a scene (fem_dual.analysis.orbit builds
 on them). Bad input answers here without loading DOLFINx or PETSc.
 """
 from __future__ import annotations
@@ -107,7 +107,7 @@ class Energy:
             return cls(scene, matrices), ""
         if getattr(scene, "linear", True):
             return None, "a linear scene needs K symmetric and no damping"
-        from fem_dual.base_state import force_jacobian
+        from fem_dual.slab.base_state import force_jacobian
 
         rng = np.random.default_rng(0)
         radius = max(1.0, float(np.abs(x0).max()))
@@ -164,7 +164,7 @@ def check_resolution(scene, x0: np.ndarray, v0: np.ndarray, T0: float, cells: in
     """InputError when the start state is beyond STATE_RANGE, or when the guess turns more than
     MAX_RADIANS_PER_CELL per cell at its start rate (its motion could not be resolved, and the
     guess run alone would take that long)."""
-    from fem_dual.stepper import motion_rate
+    from fem_dual.integrate.estimate import motion_rate
 
     size = float(np.abs(np.concatenate([x0, v0])).max())
     if size > 0 and not STATE_RANGE[0] <= size <= STATE_RANGE[1]:
