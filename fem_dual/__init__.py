@@ -18,7 +18,8 @@ from fem_dual.errors import InputError, SolveError  # noqa: E402 -- after the BL
 __all__ = ["RunConfig", "RunResult", "run", "InputError", "SolveError", "SCENES", "get_scene"]
 __version__ = "0.1.0"
 
-_LAZY = {"RunConfig": "fem_dual.config", "RunResult": "fem_dual.integrate.simulation", "run": "fem_dual.integrate.simulation",
+_LAZY = {"RunConfig": "fem_dual.config", "RunResult": "fem_dual.integrate.result",
+         "run": "fem_dual.integrate.api",
          "SCENES": "fem_dual.scenes", "get_scene": "fem_dual.scenes"}
 
 

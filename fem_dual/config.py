@@ -8,7 +8,7 @@ import os
 from collections.abc import Mapping as abc_Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, Mapping, Optional, Sequence, Union
+from typing import Any, Dict, Mapping, Optional, Sequence, Union
 
 import numpy as np
 
@@ -16,12 +16,50 @@ from fem_dual.slab.base_state import stiff_at_start
 from fem_dual.errors import InputError
 from fem_dual.choices import BASES, RECOVERIES
 from fem_dual.scenes import Scene, get_scene
-from fem_dual.scenes.base import (DENSE_BUDGET, DENSE_WORDS, MAX_DOFS, parse_number,
+from fem_dual.scenes.base import (DENSE_BUDGET, DENSE_WORDS, MAX_DOFS, STATE_MAX, parse_number,
                                   parse_vector, show)
-from fem_dual.integrate.estimate import ROUNDOFF_REL, Tolerance
 
-__all__ = ["RunConfig", "MAX_VERTICES", "MAX_DEGREE", "STAGING_LIMIT", "MAX_DOFS",
-           "DENSE_BUDGET", "DENSE_WORDS"]
+__all__ = ["RunConfig", "Tolerance", "REFUSE_RELATIVE", "ACCEPT_GLOBAL", "ROUNDOFF_REL",
+           "MAX_VERTICES", "MAX_DEGREE", "STAGING_LIMIT", "MAX_DOFS", "DENSE_BUDGET", "DENSE_WORDS"]
+
+# Fixed slabs (no --rtol): the acceptance rule. A run whose estimated error exceeds this fraction
+# of the motion's scale is refused (exit 3), and a slab whose local error would make it so is
+# retried shorter.
+REFUSE_RELATIVE = 1e-3
+
+# --rtol: the estimated global error may exceed the tolerance by at most this factor before the
+# run is refused (the local errors are controlled; growth of the motion can still amplify them).
+ACCEPT_GLOBAL = 10.0
+
+# The estimate does not resolve errors below this fraction of the motion's scale (round-off of
+# the assembled slab systems and of the recovery): it reports at least this much.
+ROUNDOFF_REL = 1e-12
+
+
+@dataclass(frozen=True)
+class Tolerance:
+    """What the run must reach: relative and absolute tolerances, and whether the user set them
+    (adaptive slab lengths) or they are the acceptance rule of fixed slabs."""
+
+    rtol: float
+    atol: float
+    adaptive: bool
+
+    @classmethod
+    def fixed(cls) -> "Tolerance":
+        return cls(REFUSE_RELATIVE, 0.0, False)
+
+    @property
+    def label(self) -> str:
+        """The tolerance as messages name it."""
+        return (f"rtol={self.rtol:g}, atol={self.atol:g}" if self.adaptive
+                else f"{self.rtol:g} of the motion's scale")
+
+    @property
+    def refuse_factor(self) -> float:
+        """How far the weighted global estimate may exceed 1 before the run is refused."""
+        return ACCEPT_GLOBAL if self.adaptive else 1.0
+
 
 MAX_VERTICES = 20_000_000  # over the whole run: the vertex arrays of the JSON must fit in memory
 SUPERPOSE = ("auto", "yes", "no")
@@ -93,8 +131,6 @@ def _within_state_max(what: str, values: np.ndarray, advice: str) -> None:
     """InputError when an entry of `values` (the start state, the force there) exceeds
     STATE_MAX, where the dual action's squares overflow (it ended as a Newton failure with an
     infinite residual, exit 3)."""
-    from fem_dual.analysis.orbit_input import STATE_MAX
-
     size = float(np.abs(values).max(initial=0.0))
     if size > STATE_MAX:
         raise InputError(f"{what}: an entry of size {size:.3g} is beyond {STATE_MAX:g}, where "
@@ -401,6 +437,21 @@ class RunConfig:
         if check_petsc:
             config.check_petsc()
         return config
+
+    def identity(self) -> Dict[str, Any]:
+        """The options that decide a run's slabs and values: a resumed run must repeat them."""
+        from fem_dual import __version__
+
+        # rtol before slabs: a run with --rtol has slabs=1, so rtol names the difference
+        return {"scene": self.scene.name, "parameters": self.scene.parameters(), "T": self.T,
+                "cells": self.cells, "degree": self.degree, "rtol": self.rtol,
+                "atol": self.atol, "slabs": self.slabs,
+                "x0": self.x0.tolist(), "v0": self.v0.tolist(),
+                "base": self.base, "coordinates": self.coordinates,
+                "recovery": self.recovery, "assembly": self.assembly,
+                "staging": self.staging, "superpose": self.superpose,
+                "max_halvings": self.max_halvings, "petsc": dict(sorted(self.petsc.items())),
+                "version": __version__}
 
     def check_petsc(self) -> None:
         """The PETSc options (--petsc-option, PETSC_OPTIONS) are input too: InputError naming a

@@ -1,6 +1,6 @@
 """The two ways a run can end badly, each with its exit status."""
 
-__all__ = ["InputError", "SolveError"]
+__all__ = ["InputError", "SolveError", "one_line"]
 
 
 class InputError(ValueError):
@@ -23,3 +23,10 @@ class SolveError(RuntimeError):
         super().__init__(message)
         self.slab = slab
         self.partial = None
+
+
+def one_line(exc: BaseException) -> str:
+    """An exception as one line of a message: its type and its text with white space folded (an
+    OSError's text alone: it names the file and the cause)."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return f"{type(exc).__name__}: {text}" if not isinstance(exc, OSError) else text

@@ -8,7 +8,7 @@ import numpy as np
 from mpi4py import MPI
 
 __all__ = ["allreduce", "gather_rows", "bcast", "print0", "is_root", "input_on_root",
-           "root_first"]
+           "root_first", "on_root"]
 
 
 def is_root(comm: MPI.Comm) -> bool:
@@ -91,3 +91,18 @@ def root_first(comm: MPI.Comm, action: Any) -> None:
         raise kinds.get(what[0], RuntimeError)(what[1])
     if comm.rank != 0:
         action()
+
+
+def on_root(comm: MPI.Comm, action: Any) -> "tuple[Any, str | None]":
+    """action() on rank 0: (its value, why it failed in one line or None); (None, None)
+    elsewhere. Not collective: the caller shares the outcome with its next broadcast, so an
+    error on rank 0 (a full disk, a bug) ends the run on every rank instead of leaving them
+    waiting in the next collective."""
+    from fem_dual.errors import one_line
+
+    if comm.rank != 0:
+        return None, None
+    try:
+        return action(), None
+    except Exception as exc:  # noqa: BLE001 -- shared, then raised on every rank
+        return None, one_line(exc)

@@ -17,15 +17,19 @@ from __future__ import annotations
 from typing import Callable, Optional, Tuple
 
 import numpy as np
-import scipy.linalg as sla
-from scipy.linalg import expm
 
-from fem_dual.scenes.linear import first_order_matrix
 
 __all__ = ["LinearFlow", "EigenFlow", "IVPFlow", "first_order_matrix", "linear_reference",
            "linear_flow", "EIGEN_MAX_CONDITION"]
 
 EIGEN_MAX_CONDITION = 1e6  # eigenvectors beyond this (near flutter, defective): expm instead
+
+
+def _expm(A: np.ndarray) -> np.ndarray:
+    """scipy's matrix exponential (imported on first use: validating a scene needs none)."""
+    from scipy.linalg import expm
+
+    return expm(A)
 
 
 class LinearFlow:
@@ -56,11 +60,11 @@ class LinearFlow:
             h = a - self._anchor[0]
             if h > 0:
                 if self._step is None or abs(self._step[0] - h) > 1e-9 * h:
-                    self._step = (h, expm(h * self.A))
+                    self._step = (h, _expm(h * self.A))
                 self._chained += 1
                 return self._step[1] @ self._anchor[1]
         self._chained = 0
-        return expm(a * self.A) @ self.z0
+        return _expm(a * self.A) @ self.z0
 
     def __call__(self, t: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         t = np.asarray(t, dtype=float)
@@ -73,7 +77,7 @@ class LinearFlow:
         # of dt at t / dt ~ 1e4); reusing their exponentials errs by |A| times that mismatch
         if (cached is None or cached.shape != offsets.shape
                 or np.abs(cached - offsets).max() > 1e-9 * max(offsets[-1], 1e-300)):
-            self._E = expm(offsets[:, None, None] * self.A)
+            self._E = _expm(offsets[:, None, None] * self.A)
             self._offsets = offsets
         z = self._E @ za
         return z[:, :self.n], z[:, self.n:]
@@ -87,6 +91,8 @@ class EigenFlow:
     def __init__(self, pencil: Tuple[np.ndarray, np.ndarray], x0: np.ndarray, v0: np.ndarray):
         F, E = pencil
         self.n = len(x0)
+        import scipy.linalg as sla
+
         self.lam, self.V = sla.eig(F, E)
         self.c = np.linalg.solve(self.V, np.concatenate([x0, v0]))
 
@@ -154,6 +160,15 @@ class IVPFlow:
                 out[ahead] = sol.y.T
                 self.t, self.z = t[-1], sol.y[:, -1].copy()
         return out[:, :self.n], out[:, self.n:]
+
+
+def first_order_matrix(M: np.ndarray, K: np.ndarray,
+                       D: Optional[np.ndarray] = None) -> np.ndarray:
+    """A of z' = A z for M x'' + D x' + K x = 0."""
+    n = M.shape[0]
+    D = np.zeros((n, n)) if D is None else D
+    return np.block([[np.zeros((n, n)), np.eye(n)],
+                     [-np.linalg.solve(M, K), -np.linalg.solve(M, D)]])
 
 
 def linear_reference(M, K, t, x0, v0, D=None) -> Tuple[np.ndarray, np.ndarray]:

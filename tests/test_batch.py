@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from fem_dual import RunConfig, run
-from fem_dual.integrate import simulation as driver
+from fem_dual.integrate import chunks, loop, state
 from fem_dual.integrate.simulation import Simulation
 from fem_dual.errors import SolveError
 from fem_dual.slab.kronecker import KroneckerSuperposition, decoupled_blocks, probes
@@ -22,7 +22,7 @@ def test_batched_slabs_agree_with_solving_every_slab(scene, params, monkeypatch)
     batched = run(RunConfig.create(scene, params, superpose="yes", **args))
     direct = run(RunConfig.create(scene, params, superpose="no", **args))
     with monkeypatch.context() as patch:  # the same bases, slab by slab
-        patch.setattr(driver, "_batch_step", lambda *a: (0, None))
+        patch.setattr(loop, "batch_step", lambda *a: (0, None))
         one_by_one = run(RunConfig.create(scene, params, superpose="yes", **args))
     assert batched.solver["batched_slabs"] == 40 and direct.solver["batched_slabs"] == 0
     assert one_by_one.solver["batched_slabs"] == 0
@@ -47,7 +47,8 @@ def test_batched_slabs_agree_with_solving_every_slab(scene, params, monkeypatch)
 def test_chunks_give_the_numbers_of_one_chunk(monkeypatch):
     config = RunConfig.create("ziegler", T=200.0, slabs=100, cells=8, degree=4)
     whole = run(config)
-    monkeypatch.setattr(driver, "CHUNK_SLABS", 7)
+    monkeypatch.setattr(chunks, "CHUNK_SLABS", 7)
+    monkeypatch.setattr(state, "CHUNK_SLABS", 7)
     chunked = run(config)
     assert whole.solver["batched_slabs"] == chunked.solver["batched_slabs"] == 100
     assert np.array_equal(whole.x[-1], chunked.x[-1])  # the slab-to-slab recurrence
@@ -83,7 +84,7 @@ def test_probes_give_the_bases_of_the_unit_start_states():
     assert isinstance(probed, KroneckerSuperposition) and probed.gathers is not None
     # two per place in the largest block (one mode, or a complex pair): positions, velocities
     assert len(probed.starts) == 2 * np.bincount(probed.blocks).max() < 16
-    dense = KroneckerSuperposition(sim.problem, sim.solver, sim.sampler)
+    dense = KroneckerSuperposition(sim.backend.problem, sim.backend.solver, sim.backend.sampler)
     dense.starts, dense.gathers = np.eye(16), None
     Z = np.random.default_rng(1).normal(size=(5, 16))
     a, b = probed.batch(Z, 0.1), dense.batch(Z, 0.1)
@@ -117,7 +118,8 @@ def test_a_batched_run_resumed_after_a_signal_ends_bit_for_bit(tmp_path, monkeyp
     whole = run(RunConfig.create("ziegler", out=tmp_path / "a", **args))
     config = RunConfig.create("ziegler", out=tmp_path / "b", **args)
     with monkeypatch.context() as patch:
-        patch.setattr(driver, "CHUNK_SLABS", 300)
+        patch.setattr(chunks, "CHUNK_SLABS", 300)
+        patch.setattr(state, "CHUNK_SLABS", 300)
         asked = iter([0, 0, signal.SIGINT])  # after the third chunk (8 + 32 + 128 slabs)
         patch.setattr(faults, "requested", lambda: next(asked, 0))
         with pytest.raises(faults.Interrupted) as info:

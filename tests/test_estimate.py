@@ -12,8 +12,10 @@ import pytest
 
 from fem_dual import RunConfig, SolveError, run
 from fem_dual.cli import main
-from fem_dual.integrate.estimate import ErrorWeights, Tolerance, stalled, step_factor
-from fem_dual.meshes import SlabSchedule
+from fem_dual.config import Tolerance
+from fem_dual.integrate.controller import SlabSchedule, step_factor
+from fem_dual.integrate.estimate import ErrorWeights
+from fem_dual.slab.snes import stalled
 
 JUDGED_ABOVE = 1e-11  # below this the reference's own error and round-off dominate
 
@@ -306,7 +308,7 @@ def test_the_snes_path_judges_volume_by_difference_tangents():
 def test_volume_defect_of_exact_flows():
     from scipy.linalg import expm
 
-    from fem_dual.integrate.estimate import volume_defect
+    from fem_dual.integrate.judge import volume_defect
 
     rng = np.random.default_rng(4)
     n = 3

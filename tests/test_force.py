@@ -219,9 +219,9 @@ def test_t_eval_beyond_what_the_run_vouches_for_fails(monkeypatch):
     """Without the slab loop's judging of the gaps (patched out), the estimate at the t-eval
     times exceeds the tolerance: the run fails (exit 3) with its results kept, never ok."""
     from fem_dual import SolveError
-    from fem_dual.integrate import simulation as driver
+    from fem_dual.integrate import loop
 
-    monkeypatch.setattr(driver, "_output", lambda config: None)
+    monkeypatch.setattr(loop, "output_request", lambda config: None)
     with pytest.raises(SolveError, match="--t-eval times is estimated") as caught:
         run(RunConfig.create("force", {"F": "-100*x"}, T=2, rtol=1e-8, cells=1, degree=8,
                              x0="1", t_eval="0:2:201"))

@@ -166,7 +166,7 @@ def test_newton_change_is_the_sampled_newton_step_to_second_order(scene):
     sim.begin(config)
     z0 = np.concatenate([config.x0, config.v0]) + 0.05
     sim.solve_slab(z0, 0.0, 0.7)
-    solver = sim.solver
+    solver = sim.backend.solver
     solution = solver.x.copy()
     direction = np.random.default_rng(5).standard_normal(solution.size)
     gaps = []
@@ -174,10 +174,10 @@ def test_newton_change_is_the_sampled_newton_step_to_second_order(scene):
         solver.x = solution + eps * np.abs(solution).max() * direction
         solver.local.set_state(solver.x)
         linear = solver.newton_change()
-        before = sim.sampler()
+        before = sim.backend.sampler()
         solver._solved_residual = solver._lu = None  # the step with J at the displaced state
         solver.newton_step()
-        moved = sim.sampler()
+        moved = sim.backend.sampler()
         solver.restore(z0)
         sampled = np.hstack([moved.x - before.x, moved.v - before.v])
         assert np.abs(linear - sampled).max() <= 0.01 * np.abs(sampled).max()

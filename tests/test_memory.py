@@ -69,18 +69,18 @@ def test_close_destroys_the_petsc_objects(capfd):
         sim.run(config)
         sim.close()
         for s in (sim, sim.companion):
-            solver = s.solver
+            solver = s.backend.solver
             handles = [solver.A, solver.b, getattr(solver, "ksp", None),
                        getattr(solver, "snes", None), getattr(solver, "x", None),
-                       s.sampler.momenta._vec]
+                       s.backend.sampler.momenta._vec]
             assert all(h.handle == 0 for h in handles if h is not None), name
-            assert s.problem.w._petsc_x is None, name
+            assert s.backend.problem.w._petsc_x is None, name
         run(config)
     for scene in ("ziegler", "curl3d"):  # pointwise: no PETSc objects at all
         config = RunConfig.create(scene, T=0.5, slabs=2, cells=2)
         sim = Simulation.for_config(config, MPI.COMM_WORLD)
         sim.run(config)
-        assert sim.problem.w._petsc_x is None and sim.companion.problem.w._petsc_x is None
+        assert sim.backend.problem.w._petsc_x is None and sim.companion.backend.problem.w._petsc_x is None
         sim.close()
     capfd.readouterr()
     PETSc.garbage_view(PETSc.COMM_WORLD)

@@ -2,8 +2,7 @@
 import numpy as np
 import pytest
 
-from fem_dual.meshes import SlabSchedule
-from fem_dual.meshes.time_mesh import FIRST_PATIENCE, MAX_PATIENCE
+from fem_dual.integrate.controller import FIRST_PATIENCE, MAX_PATIENCE, SlabSchedule
 
 
 def _walk(schedule, fail_at=()):

@@ -86,7 +86,7 @@ def test_compiled_band_is_the_numpy_band(scene, degree, cells):
     sim = Simulation.for_config(config)
     try:
         sim.run(config)
-        local = sim.solver.local
+        local = sim.backend.solver.local
         assert local._native_band is not None
         local.set_state(np.random.default_rng(3).uniform(-0.05, 0.05, local.size))
         _, compiled = local.residual_and_jacobian()
@@ -143,7 +143,7 @@ def _dtp_pair(scene, params, scale, seed=5):
     sim = Simulation.for_config(config)
     try:
         sim.run(config)
-        problem = sim.problem
+        problem = sim.backend.problem
         dtp = problem.pointwise
         rng = np.random.default_rng(seed)
         dual = rng.uniform(-scale, scale, problem.w.x.array.size)
@@ -206,7 +206,7 @@ def _slab_newton(scene, params, base, dt, x0, v0, compiled=True, bail=False, war
     sim = Simulation.for_config(config, MPI.COMM_SELF)
     try:
         sim.begin(config)
-        solver, local = sim.solver, sim.solver.local
+        solver, local = sim.backend.solver, sim.backend.solver.local
         assert local.compiled_newton
         answered = []
         run_compiled = local._native_newton.run
@@ -220,7 +220,7 @@ def _slab_newton(scene, params, base, dt, x0, v0, compiled=True, bail=False, war
         local._native_newton.run = watched
         if not compiled:
             local._native_newton = None
-        sim.problem.set_slab(config.x0, config.v0, dt, 0.0)
+        sim.backend.problem.set_slab(config.x0, config.v0, dt, 0.0)
         start = None
         if warm is not None:
             local.set_state(warm[0])
@@ -229,8 +229,8 @@ def _slab_newton(scene, params, base, dt, x0, v0, compiled=True, bail=False, war
             solver.solve(warm=start)
         except SolveError as exc:
             return None, None, None, str(exc), answered
-        if sim.problem.pointwise is not None:  # the implicit DtP map's root and G_x^-1 too
-            dtp = sim.problem.pointwise
+        if sim.backend.problem.pointwise is not None:  # the implicit DtP map's root and G_x^-1 too
+            dtp = sim.backend.problem.pointwise
             answered.append((dtp.X.x.array.copy(), dtp.Ginv.x.array.copy()))
         return (solver.x.copy(), solver.histories[-1], solver._floor, None, answered)
     finally:
@@ -327,7 +327,7 @@ def test_the_compiled_newton_factors_the_jacobian_at_its_solution():
                               reference="none")
     sim = Simulation.for_config(config)
     try:
-        local = sim.solver.local
+        local = sim.backend.solver.local
         answers = []
         run_compiled = local._native_newton.run
         local._native_newton.run = lambda x, **tests: answers.append(
@@ -341,7 +341,7 @@ def test_the_compiled_newton_factors_the_jacobian_at_its_solution():
         local._factors_at = local._tangent_at = None
         fresh = local.tangent_matrix()
         assert np.abs(held - fresh).max() <= 1e-12 * np.abs(fresh).max()
-        assert sim.companion.solver.local.factor_solution is False
+        assert sim.companion.backend.solver.local.factor_solution is False
     finally:
         sim.close()
 
@@ -364,7 +364,7 @@ def test_compiled_tangents_are_the_numpy_products(scene, params, base, cells, x0
                               staging="off", reference="none", x0=x0, v0=v0)
     sim = Simulation.for_config(config)
     try:
-        local = sim.solver.local
+        local = sim.backend.solver.local
         assert local._native_tangents is not None
         calls = []
         compiled = local._compiled_tangents
@@ -451,8 +451,10 @@ def test_compiled_estimates_are_the_numpy_ones(slabs, vertices, n):
     for a part that has not moved, with and without atol, and with the interpolation error
     asked for; a value that is not finite, or a weight that is zero, leaves the slab to the
     numpy code."""
-    from fem_dual.integrate.simulation import _compiled_estimates, _estimates
-    from fem_dual.integrate.estimate import ErrorWeights, Tolerance
+    from fem_dual.integrate.estimate import _compiled_estimates
+    from fem_dual.integrate.estimate import estimate_slabs as _estimates
+    from fem_dual.config import Tolerance
+    from fem_dual.integrate.estimate import ErrorWeights
 
     rng = np.random.default_rng(10 * slabs + vertices + n)
     checked = 0

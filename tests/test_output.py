@@ -306,7 +306,7 @@ def test_petsc_integer_beyond_its_range_is_bad_input(capsys):
 @pytest.mark.serial
 def test_a_failed_csv_write_says_failed_and_leaves_no_partial_file(tmp_path, capsys,
                                                                    monkeypatch):
-    import fem_dual.integrate.simulation as driver_module
+    import fem_dual.integrate.result as driver_module
 
     def full(path, *args, **kwargs):
         with open(path, "w") as f:

@@ -101,7 +101,7 @@ def test_a_repeated_run_steps_its_base_again():
     try:
         sim.run(config)
         calls = []
-        for predictor in (sim.problem.predictor, sim.companion.problem.predictor):
+        for predictor in (sim.backend.problem.predictor, sim.companion.backend.problem.predictor):
             predictor._run = lambda z, end, f=predictor._run: calls.append(1) or f(z, end)
         sim.run(config)
         assert len(calls) == 2
@@ -117,7 +117,7 @@ def test_the_companion_steps_its_own_base_with_twice_the_steps():
     sim = Simulation.for_config(config)
     try:
         r = sim.run(config)
-        answer, companion = sim.problem.predictor, sim.companion.problem.predictor
+        answer, companion = sim.backend.problem.predictor, sim.companion.backend.problem.predictor
         assert companion is not answer and companion.steps == 2 * answer.steps
     finally:
         sim.close()
@@ -201,7 +201,7 @@ def test_new_parameter_values_reach_the_base():
         second = RunConfig.create("curl3d", {"K": "2,0,0,0,2,0,0,0,2"}, T=1, cells=2, degree=3,
                                   slabs=1, base="rk4", reference="none", staging="off")
         sim.run(second)
-        for problem in (sim.problem, sim.companion.problem):
+        for problem in (sim.backend.problem, sim.companion.backend.problem):
             assert problem.predictor.scene == second.scene
     finally:
         sim.close()

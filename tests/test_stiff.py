@@ -7,7 +7,7 @@ import pytest
 from mpi4py import MPI
 
 from fem_dual import RunConfig
-from fem_dual.integrate.simulation import Simulation, run
+from fem_dual.integrate.api import Simulation, run
 from fem_dual.errors import InputError, SolveError
 from fem_dual.scenes import get_scene
 

@@ -30,7 +30,7 @@ def _rhs_and_jacobian(scene, length: float = 0.0):
     n = scene.n
     M = scene.mass_matrix()
     if scene.linear:
-        from fem_dual.scenes.linear import first_order_matrix
+        from fem_dual.reference import first_order_matrix
 
         A = first_order_matrix(M, scene.stiffness_matrix(), scene.damping_matrix())
         return (lambda z: A @ z), (lambda z: A)

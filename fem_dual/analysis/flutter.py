@@ -32,7 +32,7 @@ import scipy.linalg as sla
 from mpi4py import MPI
 
 from fem_dual.config import RunConfig
-from fem_dual.integrate.simulation import run
+from fem_dual.integrate.api import run
 from fem_dual.errors import InputError, SolveError
 from fem_dual.scenes.linear import LinearScene
 

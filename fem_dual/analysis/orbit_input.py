@@ -9,6 +9,7 @@ from typing import List, Optional, Tuple
 import numpy as np
 
 from fem_dual.errors import InputError
+from fem_dual.scenes.base import STATE_MAX
 
 __all__ = ["MODES", "parse_mode", "parse_continuation", "check_resolution", "Energy",
            "energy_matrices"]
@@ -156,7 +157,6 @@ class Energy:
 MAX_RADIANS_PER_CELL = 8.0  # a guess that turns faster than this per cell cannot be resolved
 
 
-STATE_MAX = 1e150  # |x0|, |v0| a dual action can hold (it squares them; runs refuse more too)
 STATE_RANGE = (1e-150, STATE_MAX)  # an orbit's: it divides by its size as well
 
 
@@ -164,7 +164,7 @@ def check_resolution(scene, x0: np.ndarray, v0: np.ndarray, T0: float, cells: in
     """InputError when the start state is beyond STATE_RANGE, or when the guess turns more than
     MAX_RADIANS_PER_CELL per cell at its start rate (its motion could not be resolved, and the
     guess run alone would take that long)."""
-    from fem_dual.integrate.estimate import motion_rate
+    from fem_dual.slab.base_state import motion_rate
 
     size = float(np.abs(np.concatenate([x0, v0])).max())
     if size > 0 and not STATE_RANGE[0] <= size <= STATE_RANGE[1]:
@@ -174,7 +174,7 @@ def check_resolution(scene, x0: np.ndarray, v0: np.ndarray, T0: float, cells: in
                          "squares of the state stay in double precision; rescale the coordinates")
 
     if scene.linear:
-        from fem_dual.scenes.linear import first_order_matrix
+        from fem_dual.reference import first_order_matrix
 
         A = first_order_matrix(scene.mass_matrix(), scene.stiffness_matrix(),
                                scene.damping_matrix())

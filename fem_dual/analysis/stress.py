@@ -20,7 +20,7 @@ import numpy as np
 from mpi4py import MPI
 
 from fem_dual.config import RunConfig
-from fem_dual.integrate.simulation import RunResult, Simulation
+from fem_dual.integrate.api import RunResult, Simulation
 from fem_dual.errors import InputError, SolveError
 from fem_dual.analysis.flutter import critical_load, eigen_rate, growth_rate
 from fem_dual.scenes.column import lowest_mode, scaled_column

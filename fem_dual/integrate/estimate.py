@@ -1,6 +1,4 @@
-"""The slab loop's parts: an error estimate for every slab, a step-size controller, and sinks.
-
-Error estimate (computed from the dual solutions alone, no reference):
+"""The error estimate of a slab, computed from the dual solutions alone (no reference).
 
 - The *companion*: the same slab (same start state, cells and length) solved with degree p + 1.
   Its vertex values are far more accurate (order 2p + 2 against 2p), so the difference
@@ -13,80 +11,33 @@ Error estimate (computed from the dual solutions alone, no reference):
   residual assembly and one solve with the factored Jacobian). So the estimate follows the
   errors through growth, damping and rotation of the motion, as the true error does.
 
-Step-size control (Hairer-Norsett-Wanner, SUNDIALS): errors are weighted by
-w = atol + rtol * scale, with scale the running maximum of |x| (for position errors) and of |v|
-(for velocity errors). A slab is accepted when its local error per unit of time,
-max |l| / w / (dt / T), is at most 1, so that the local errors of the whole run add up to at most
-the tolerance. The next length is the slab's times step_factor(err) (about err^(-1/(2p))),
-rounded by meshes.SlabSchedule to a power of two of its unit.
+Errors are weighted by w = atol + rtol * scale, with scale the running maximum of |x| (for
+position errors) and of |v| (for velocity errors), as in Hairer-Norsett-Wanner and SUNDIALS. A
+slab is accepted when its local error per unit of time, max |l| / w / (dt / T), is at most 1, so
+that the local errors of the whole run add up to at most the tolerance
+(`fem_dual.integrate.controller` chooses the next length from it).
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
 
+from fem_dual import native
+from fem_dual.config import ROUNDOFF_REL, RunConfig, Tolerance
+from fem_dual.integrate.dense import GAP_ORDER, slab_interpolation_gaps
 from fem_dual.quiet import quiet_numpy
+from fem_dual.slab.values import VertexValues
 
-__all__ = ["ErrorWeights", "step_factor", "step_factors", "SlabEstimate", "Tolerance", "REFUSE_RELATIVE",
-           "VOLUME_TOL", "volume_defect",
-           "ACCEPT_GLOBAL", "ESTIMATE_SAFETY", "ROUNDOFF_REL", "initial_fraction",
-           "motion_rate", "stalled"]
+__all__ = ["ErrorWeights", "SlabEstimate", "Estimates", "estimate_slabs", "batched", "all_finite",
+           "output_request", "ESTIMATE_SAFETY", "ROUNDOFF_REL"]
 
-# Fixed slabs (no --rtol): the acceptance rule. A run whose estimated error exceeds this fraction
-# of the motion's scale is refused (exit 3), and a slab whose local error would make it so is
-# retried shorter.
-REFUSE_RELATIVE = 1e-3
-# --rtol: the estimated global error may exceed the tolerance by at most this factor before the
-# run is refused (the local errors are controlled; growth of the motion can still amplify them).
-ACCEPT_GLOBAL = 10.0
 # The companion's difference times this: the companion's own error (a factor O(h^2) smaller)
 # and its alignment with the answer's make the bare difference 0.9-1.1 times the true error;
 # doubled, the estimate sits above it (measured ratios in the README).
 ESTIMATE_SAFETY = 2.0
-# The estimate does not resolve errors below this fraction of the motion's scale (round-off of
-# the assembled slab systems and of the recovery): it reports at least this much.
-ROUNDOFF_REL = 1e-12
-# Nonlinear slabs: the flow of x' = v, M v' = F(x) preserves phase-space volume whatever F
-# (Liouville: det dz(t)/dz0 = 1; exp(-tr(M^-1 D) t) with damping D), and so does an accurate
-# slab map. Where det of the answer's exact slab tangent is off by more than this, the cells do
-# not follow the motion, although the companion of degree p + 1 may miss it the same way, so
-# that the estimate cannot show it (curl3d near its unstable equilibrium x = (1e3, 0, 0),
-# v0 = 1e-9: det - 1 = -1.0 and -0.98 with 8 and 32 cells, estimate 5e-8 against a true error
-# of 1e9; slabs that follow the motion measured 1e-13 .. 3e-2, a coarse p = 1 slab of curl2d
-# 0.45, a slab of 4 cells through a bump of F narrower than a cell 0.62, its answer still
-# within its estimate). A gross failure, not an accuracy test: that is the estimate's.
-VOLUME_TOL = 0.5
-SAFETY = 0.9
-MAX_GROWTH = 4.0
-MIN_SHRINK = 0.125
-
-
-@dataclass(frozen=True)
-class Tolerance:
-    """What the run must reach: relative and absolute tolerances, and whether the user set them
-    (adaptive slab lengths) or they are the acceptance rule of fixed slabs."""
-
-    rtol: float
-    atol: float
-    adaptive: bool
-
-    @classmethod
-    def fixed(cls) -> "Tolerance":
-        return cls(REFUSE_RELATIVE, 0.0, False)
-
-    @property
-    def label(self) -> str:
-        """The tolerance as messages name it."""
-        return (f"rtol={self.rtol:g}, atol={self.atol:g}" if self.adaptive
-                else f"{self.rtol:g} of the motion's scale")
-
-    @property
-    def refuse_factor(self) -> float:
-        """How far the weighted global estimate may exceed 1 before the run is refused."""
-        return ACCEPT_GLOBAL if self.adaptive else 1.0
 
 
 class ErrorWeights:
@@ -159,23 +110,6 @@ def _peaks(part: np.ndarray) -> np.ndarray:
     return np.abs(part).reshape(len(part), -1).max(axis=1, initial=0.0)
 
 
-def step_factor(err: Optional[float], order: int) -> float:
-    """Hairer's factor for the next slab length from the weighted error per unit of time
-    (err ~ dt^order); a solve that failed (err None) or a non-finite error halves."""
-    if err is None or not math.isfinite(err):
-        return 0.5 if err is None else MIN_SHRINK
-    if not err > 0.0:
-        return MAX_GROWTH
-    return min(max(SAFETY * err ** (-1.0 / order), MIN_SHRINK), MAX_GROWTH)
-
-
-def step_factors(err: np.ndarray, order: int) -> np.ndarray:
-    """`step_factor` of finite errors, at once."""
-    with np.errstate(divide="ignore"):
-        grown = SAFETY * np.where(err > 0.0, err, 1.0) ** (-1.0 / order)
-    return np.where(err > 0.0, np.clip(grown, MIN_SHRINK, MAX_GROWTH), MAX_GROWTH)
-
-
 @dataclass
 class SlabEstimate:
     """The error estimate of one accepted slab (rank 0)."""
@@ -204,42 +138,137 @@ class SlabEstimate:
                 "local_weighted": self.local_weighted, "global_weighted": self.global_weighted}
 
 
-def initial_fraction(rate: float, T: float, cells: int) -> float:
-    """The first adaptive slab's length as a fraction of T: about one radian of the motion per
-    cell, from the rate |z'| / |z| at the start (the controller corrects it within a few
-    slabs)."""
-    if not (rate > 0 and math.isfinite(rate)):
-        return 1.0
-    return min(1.0, cells / (rate * T))
+@dataclass
+class Estimates:
+    """The error estimates of consecutive slabs (arrays with a leading slab axis)."""
+
+    local: np.ndarray
+    glob: np.ndarray
+    scales: np.ndarray  # (slabs, 2): the error weights' scales with each slab's motion
+    floor: np.ndarray  # (slabs, 2): round-off floor of x and v errors
+    err_local: np.ndarray  # weighted local error per unit of time (the controller's)
+    err_global: np.ndarray
+    finite: np.ndarray  # (slabs,): whether every local and global error is finite
+    err_output: Optional[np.ndarray] = None  # weighted interpolation error between vertices
+
+    def slab(self, j: int, t0: float, dt: float) -> SlabEstimate:
+        return SlabEstimate(t0, dt, self.local[j], self.glob[j], float(self.err_local[j]),
+                            float(self.err_global[j]), tuple(self.floor[j]))
 
 
-def motion_rate(x0: np.ndarray, v0: np.ndarray, a0: np.ndarray) -> float:
-    """|z'| / |z| of the start state z = (x0, v0), z' = (v0, a0), taken per part so that units
-    do not mix: max(|v0| / |x0|, |a0| / |v0|, sqrt(|a0| / |x0|))."""
-    nx, nv, na = (float(np.abs(a).max(initial=0.0)) for a in (x0, v0, a0))
-    rates = []
-    if nx > 0:
-        rates += [nv / nx, math.sqrt(na / nx)]
-    if nv > 0:
-        rates.append(na / nv)
-    finite = [r for r in rates if math.isfinite(r)]
-    return max(finite) if finite else 0.0
-
-
-def stalled(history: List[float], floor: float = 0.0) -> bool:
-    """Whether a Newton residual history stalled (three or more steps that reduced the residual
-    by less than a factor 0.9, counted while it is above the round-off `floor`) before it
-    converged: the solution it found may be another branch, and the slab is retried shorter."""
-    steps = [b / a for a, b in zip(history[:-1], history[1:]) if a > floor and a > 0]
-    return sum(r > 0.9 for r in steps) >= 3
-
-
-def volume_defect(jacobian: np.ndarray, M: np.ndarray, D: Optional[np.ndarray],
-                  dt: float) -> float:
-    """|det(jacobian) - exp(-tr(M^-1 D) dt)|: how far a slab map's tangent (2n, 2n) is from
-    preserving phase-space volume as the flow of M v' + D v = F(x) does (VOLUME_TOL)."""
-    exact = 1.0 if D is None else math.exp(-float(np.trace(np.linalg.solve(M, D))) * dt)
+def estimate_slabs(vals: VertexValues, companion: VertexValues, algebraic: Optional[np.ndarray],
+               psi: Optional[np.ndarray], lost: Optional[np.ndarray], weights: ErrorWeights,
+               dt, T: float, output: Optional[Tuple[Any, int]] = None,
+               compiled: bool = True) -> Estimates:
+    """The estimates of consecutive slabs (values with a leading slab axis; lost (slabs, 2n)),
+    each slab's motion recorded in the weights before the next. With `output` (the scene and
+    the order 2p of the vertex values), times between the vertices are asked for: the
+    interpolation error there (`slab_interpolation_gaps`) must be within the tolerance too, and
+    enters the controller's error at the vertices' order (a slab whose gap exceeds it is
+    retried shorter, as one whose local error does). In compiled code where it is available
+    (fem_dual.native's `estimate`, `compiled`), for finite values and positive weights; the
+    numpy below judges the rest."""
+    done = _compiled_estimates(vals, companion, algebraic, psi, lost, weights, dt,
+                               T) if compiled else None
+    if done is not None:
+        local, glob, scales, floor, err_local, err_global = done
+        finite = np.ones(len(scales), dtype=bool)
+        if output is None:
+            return Estimates(local, glob, scales, floor, err_local, err_global, finite)
+        with quiet_numpy():
+            return _with_output(vals, weights, dt, output,
+                                Estimates(local, glob, scales, floor, err_local, err_global,
+                                           finite))
+    local = companion.state() - vals.state()
+    if algebraic is not None:  # the answer's own Newton error (the companion's cancels it)
+        local += algebraic
+    local *= ESTIMATE_SAFETY
+    if lost is not None:  # damped by the zero base: gone from the answer after the start
+        local[:, 1:] += lost[:, None, :]
+    glob = local if psi is None else local + psi
+    scales = weights.running(vals.x, vals.v)
+    # local errors at the round-off floor are not resolved: counted as such they would grow per
+    # unit of time as slabs shrink and drive the lengths down to the minimum
+    floor = ROUNDOFF_REL * scales
     with quiet_numpy():
-        defect = abs(float(np.linalg.det(jacobian)) - exact)
-    return defect if math.isfinite(defect) else math.inf
+        # the largest |error| of x's and of v's (slabs, 2), NaN where one is NaN; less the
+        # floor, one number per part, that is the largest of max(|l| - floor, 0)
+        peak_local = weights.peaks(local)
+        peak_glob = peak_local if psi is None else weights.peaks(glob)
+        count = len(scales)
+        both = weights.weigh(np.concatenate([np.maximum(peak_local - floor, 0.0), peak_glob]),
+                             np.concatenate([scales, scales]))  # (weighted in one pass)
+        err_local, err_global = both[:count] / (np.asarray(dt) / T), both[count:]
+        finite = np.isfinite(peak_local).all(axis=1) & np.isfinite(peak_glob).all(axis=1)
+        est = Estimates(local, glob, scales, floor, err_local, err_global, finite)
+        return est if output is None else _with_output(vals, weights, dt, output, est)
 
+
+def _with_output(vals: VertexValues, weights: ErrorWeights, dt, output: Tuple[Any, int],
+                 est: Estimates) -> Estimates:
+    """`est` with the weighted interpolation error between the vertices (`estimate_slabs`)."""
+    scene, order = output
+    n = vals.x.shape[-1]
+    gaps = np.maximum(slab_interpolation_gaps(scene, vals.s, dt, vals.x, vals.v) - est.floor,
+                      0.0)
+    est.err_output = weights.norms(np.repeat(gaps, n, axis=1)[:, None, :], est.scales)
+    est.err_local = np.maximum(est.err_local, est.err_output ** (order / GAP_ORDER))
+    return est
+
+
+def _compiled_estimates(vals: VertexValues, companion: VertexValues,
+                        algebraic: Optional[np.ndarray], psi: Optional[np.ndarray],
+                        lost: Optional[np.ndarray], weights: ErrorWeights, dt, T: float):
+    """(local, glob, scales, floor, err_local, err_global) of `estimate_slabs` from fem_dual.native's
+    `estimate`; None where it is not compiled, or a value is not finite or a weight is not
+    positive (the numpy code judges those)."""
+    built = native.library()
+    if built is None:
+        return None
+    ffi, lib = built
+    z = vals.state()
+    if companion.state().shape != z.shape:
+        return None
+    S, V, m = z.shape
+    size = S * V * m
+    states = np.empty((2,) + z.shape)  # (one buffer, one pointer: the call's own arrays)
+    states[0], states[1] = z, companion.state()
+    out = np.empty(2 * size + 6 * S)  # local, glob, scales, floors, local and global errors
+    at, to = ffi.from_buffer("double[]", states), ffi.from_buffer("double[]", out)
+    d = (lambda a: ffi.NULL if a is None else
+         ffi.from_buffer("double[]", np.ascontiguousarray(a, dtype=float)))
+    per_slab = None if np.ndim(dt) == 0 else np.asarray(dt, dtype=float) / T
+    tol = weights.tol
+    failed = lib.fem_dual_estimate(
+        S, V, m // 2, at, at + size, d(algebraic), d(psi), d(lost), ESTIMATE_SAFETY,
+        ROUNDOFF_REL, tol.atol, tol.rtol, weights.scale_x, weights.scale_v,
+        float(dt) / T if per_slab is None else 0.0, d(per_slab), to, to + size,
+        to + 2 * size, to + 2 * size + 2 * S, to + 2 * size + 4 * S, to + 2 * size + 5 * S)
+    if failed:
+        return None
+    local = out[:size].reshape(S, V, m)
+    glob = local if psi is None else out[size:2 * size].reshape(S, V, m)
+    rest = out[2 * size:]
+    return (local, glob, rest[:2 * S].reshape(S, 2), rest[2 * S:4 * S].reshape(S, 2),
+            rest[4 * S:5 * S], rest[5 * S:])
+
+
+def batched(values: VertexValues) -> VertexValues:
+    """One slab's values with a leading slab axis of length 1 (what `estimate_slabs` reads: s, x, v
+    and the state; H_d too)."""
+    z = values.z
+    return VertexValues(values.s, values.x[None], values.v[None], values.hamiltonian[None],
+                        z=None if z is None else z[None])
+
+
+def all_finite(values: VertexValues) -> np.ndarray:
+    """Per slab (values with a leading slab axis): whether every value is finite."""
+    arrays = [values.x, values.v, values.hamiltonian[..., None]] + [
+        a for a in (values.xi, values.eta) if a is not None]
+    return np.logical_and.reduce([np.isfinite(a).reshape(len(a), -1).all(axis=1)
+                                  for a in arrays])
+
+
+def output_request(config: RunConfig) -> Optional[Tuple[Any, int]]:
+    """What `estimate_slabs` needs to judge the times between vertices, when they are asked for."""
+    return None if config.t_eval is None else (config.scene, 2 * config.degree)

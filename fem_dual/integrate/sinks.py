@@ -1,10 +1,9 @@
 """What the slab loop does with each accepted slab, in small sinks it calls (rank 0): the
 accumulator of the run's arrays and errors, the streamed XDMF output (with the restart records
-`--resume` reads back), a progress bar.
+`--resume` reads back: fem_dual.integrate.restart), a progress bar.
 """
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -13,15 +12,14 @@ from typing import Any, Dict, List, Optional, Tuple
 import numpy as np
 
 from fem_dual.config import RunConfig
-from fem_dual.meshes import SlabSchedule
 from fem_dual.errors import InputError
 from fem_dual.output import (XdmfSeries, lock_directory, series_files, write_polyline,
                              written_by_us)
-from fem_dual.slab.recovery import VertexValues
+from fem_dual.slab.values import VertexValues
 from fem_dual.integrate.estimate import SlabEstimate
 
-__all__ = ["AcceptedSlab", "SlabBatch", "PartialBatch", "Accumulator", "XdmfSink", "ProgressSink", "run_identity",
-           "Restart"]
+__all__ = ["AcceptedSlab", "SlabBatch", "PartialBatch", "Accumulator", "XdmfSink",
+           "ProgressSink"]
 
 
 @dataclass
@@ -254,22 +252,6 @@ class Accumulator:
                 "reference_lost_at": self.reference_lost_at}
 
 
-def run_identity(config: RunConfig) -> Dict[str, Any]:
-    """The options that decide a run's slabs and values: a resumed run must repeat them."""
-    from fem_dual import __version__
-
-    # rtol before slabs: a run with --rtol has slabs=1, so rtol names the difference
-    return {"scene": config.scene.name, "parameters": config.scene.parameters(), "T": config.T,
-            "cells": config.cells, "degree": config.degree, "rtol": config.rtol,
-            "atol": config.atol, "slabs": config.slabs,
-            "x0": config.x0.tolist(), "v0": config.v0.tolist(),
-            "base": config.base, "coordinates": config.coordinates,
-            "recovery": config.recovery, "assembly": config.assembly,
-            "staging": config.staging, "superpose": config.superpose,
-            "max_halvings": config.max_halvings, "petsc": dict(sorted(config.petsc.items())),
-            "version": __version__}
-
-
 def _fields(vals: VertexValues, slab: AcceptedSlab) -> Dict[str, np.ndarray]:
     return {"t": slab.t0 + slab.dt * vals.s, "xi": vals.xi, "eta": vals.eta, "x_hat": vals.x,
             "v_hat": vals.v, "hamiltonian": vals.hamiltonian,
@@ -289,10 +271,10 @@ class XdmfSink:
     (rank 0); the trajectory polyline when the run ends, however it ends. A fresh run first
     removes the files of an earlier run of the scene, so nothing stale looks current."""
 
-    def __init__(self, config: RunConfig, name: str, resume: Optional["Restart"] = None):
+    def __init__(self, config: RunConfig, name: str, resume=None):
         self.out: Path = config.out
         self.name = name
-        self.identity = run_identity(config)
+        self.identity = config.identity()
         self.series: Optional[XdmfSeries] = resume.series if resume is not None else None
         self.seconds = 0.0
         self._lock = lock_directory(self.out)
@@ -347,70 +329,6 @@ class XdmfSink:
     def files_on_disk(self) -> List[str]:
         """Our files that exist (after a failed close)."""
         return [str(p) for p in series_files(self.out, self.name) if p.exists()]
-
-
-_RESTART_FIELDS = {"slab": 10 + SlabSchedule.STATE_SIZE, "s": None, "local": None, "glob": None}
-
-
-def _check_restart(path: Path, stored, steps: Dict[str, np.ndarray],
-                   restart: Dict[str, np.ndarray]) -> None:
-    """InputError unless the stored run is whole: an options record, as many rows of every
-    field as slabs, finite values (a damaged or edited file must not reach the results)."""
-    what = None
-    if not isinstance(stored, dict):
-        what = "its options record is not one"
-    elif set(restart) != set(_RESTART_FIELDS) or not {"x_hat", "v_hat", "hamiltonian"} <= set(
-            steps):
-        what = "datasets are missing"
-    else:
-        rows = {name: len(a) for name, a in {**steps, **restart}.items()}
-        if len(set(rows.values())) != 1:
-            what = f"its datasets hold different numbers of slabs ({rows})"
-        elif restart["slab"].ndim != 2 or restart["slab"].shape[1] != _RESTART_FIELDS["slab"]:
-            what = "its slab records have the wrong shape"
-        elif not all(np.isfinite(a).all() for a in (*steps.values(), *restart.values())):
-            what = "it holds values that are not finite"
-    if what:
-        raise InputError(f"--resume: {path} cannot be resumed: {what}")
-
-
-class Restart:
-    """The completed slabs of an earlier run with --out, read back for --resume (rank 0)."""
-
-    def __init__(self, config: RunConfig, name: str):
-        import h5py
-
-        path = config.out / f"{name}.xdmf"
-        if not path.with_suffix(".h5").exists():
-            raise InputError(f"--resume: {path.with_suffix('.h5')} does not exist (no earlier "
-                             f"run of {name} with --out {config.out})")
-        try:
-            with h5py.File(path.with_suffix(".h5"), "r", locking=False) as h5:
-                stored = json.loads(h5.attrs["fem_dual"])
-                steps = {k: h5["steps"][k][:] for k in h5["steps"]}
-                restart = {k: h5["restart"][k][:] for k in h5["restart"]}
-        except (OSError, KeyError, ValueError, TypeError) as exc:
-            raise InputError(f"--resume: {path.with_suffix('.h5')} cannot be read ({exc})") \
-                from None
-        _check_restart(path.with_suffix(".h5"), stored, steps, restart)
-        mine = run_identity(config)
-        for key in mine:
-            if stored.get(key) != json.loads(json.dumps(mine[key])):
-                raise InputError(f"--resume: the run in {config.out} has {key}="
-                                 f"{stored.get(key)!r}, this one {key}={mine[key]!r}")
-        self.series = XdmfSeries.reopen(path)
-        self.slabs: List[AcceptedSlab] = []
-        n = config.scene.n
-        for k, row in enumerate(restart["slab"]):
-            (index, t0, dt), row = row[:3], row[3:]
-            schedule, (sx, sv, lw, gw, fx, fv, et0) = (row[:SlabSchedule.STATE_SIZE],
-                                                       row[SlabSchedule.STATE_SIZE:])
-            vals = VertexValues(restart["s"][k], steps["x_hat"][k].reshape(-1, n),
-                                steps["v_hat"][k].reshape(-1, n), steps["hamiltonian"][k])
-            est = SlabEstimate(et0, dt, restart["local"][k], restart["glob"][k], lw, gw,
-                               (fx, fv))
-            self.slabs.append(AcceptedSlab(int(index), t0, dt, vals, est,
-                                           tuple(int(a) for a in schedule), (sx, sv)))
 
 
 class ProgressSink:

@@ -41,6 +41,8 @@ TINY = float(np.finfo(float).tiny)  # the smallest normal float64: below it, 1/x
 DENSE_BUDGET = 2 * 1024 ** 3  # bytes
 DENSE_WORDS = 128  # n x n float64 matrices a linear run holds at its peak (see above)
 
+STATE_MAX = 1e150  # |x0|, |v0| a dual action can hold (it squares them)
+
 
 class LazyForms:
     """A scene's forms module (UFL), imported when first used: listing the scenes and checking

@@ -21,6 +21,7 @@ from typing import ClassVar, Dict, Optional, Tuple
 import numpy as np
 
 from fem_dual.errors import InputError
+from fem_dual.reference import first_order_matrix
 from fem_dual.scenes.base import (LazyForms, Scene, choice_field, is_spd, matrix_field, require_spd,
                                   show)
 
@@ -34,14 +35,6 @@ def _same(a, b) -> bool:
         return bool(np.array_equal(np.asarray(a, dtype=object), np.asarray(b, dtype=object)))
     except (TypeError, ValueError):
         return a is b
-
-
-def first_order_matrix(M: np.ndarray, K: np.ndarray, D: Optional[np.ndarray] = None) -> np.ndarray:
-    """A of z' = A z for M x'' + D x' + K x = 0."""
-    n = M.shape[0]
-    D = np.zeros((n, n)) if D is None else D
-    return np.block([[np.zeros((n, n)), np.eye(n)],
-                     [-np.linalg.solve(M, K), -np.linalg.solve(M, D)]])
 
 
 @dataclasses.dataclass(frozen=True)

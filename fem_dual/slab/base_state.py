@@ -22,12 +22,13 @@ the correction's discretisation error is small with it.
 """
 from __future__ import annotations
 
+import math
 from typing import Dict, Tuple
 
 import numpy as np
 
 __all__ = ["Predictor", "FlowPredictor", "predictor", "force_jacobian", "grows_within",
-           "stiff_at_start", "STIFF_RATIO"]
+           "stiff_at_start", "motion_rate", "STIFF_RATIO"]
 
 STIFF_RATIO = 5.0  # fastest linearised frequency / the start's rate beyond which it is stiff
 # rk4 steps per node of the dual fields (p + 1 a cell). Fewer cost accuracy: curl3d T = 8
@@ -56,8 +57,13 @@ def force_jacobian(force, x: np.ndarray) -> np.ndarray:
 class Predictor:
     """zbar(t) = z0 + t (I - t J)^-1 f(z0) for a scene (linear: J is its first-order matrix)."""
 
+    compiled = False  # (numpy only; FlowPredictor may step in compiled code)
+
     def __init__(self, scene):
         self.use_scene(scene)
+
+    def forget(self) -> None:
+        """Nothing is kept between runs (FlowPredictor keeps its last run)."""
 
     def use_scene(self, scene) -> None:
         """Predict the motion of `scene` (new parameter values of the same kind of scene)."""
@@ -310,12 +316,10 @@ def grows_within(scene, x0: np.ndarray, dt: float) -> bool:
 def stiff_at_start(scene, x0: np.ndarray, v0: np.ndarray) -> bool:
     """Whether a nonlinear scene is stiff at its start: the fastest frequency of the force
     linearised there, sqrt |eig(M^-1 dF/dx)|, exceeds STIFF_RATIO times the start's own rate
-    (fem_dual.integrate.estimate.motion_rate), so that slabs sized by the motion leave modes unresolved,
+    (`motion_rate`), so that slabs sized by the motion leave modes unresolved,
     and those modes oscillate: a fast mode that grows (an eigenvalue of M^-1 dF/dx that is not
     negative, beyond the same rate) must be followed, not damped by the predictor, so the start
     is not called stiff (curl3d at x = (1e3, 0, 0) grows at 38 per unit of time)."""
-    from fem_dual.integrate.estimate import motion_rate
-
     a0 = np.linalg.solve(scene.mass_matrix(), scene.force_numpy(x0))
     mu = _linearised_modes(scene, x0)
     rate = motion_rate(x0, v0, a0)
@@ -324,3 +328,16 @@ def stiff_at_start(scene, x0: np.ndarray, v0: np.ndarray) -> bool:
     fast = np.sqrt(np.abs(mu)) > STIFF_RATIO * rate
     growing = fast & ~((mu.real < 0) & (np.abs(mu.imag) <= 1e-9 * np.abs(mu)))
     return bool(fast.any() and not growing.any())
+
+
+def motion_rate(x0: np.ndarray, v0: np.ndarray, a0: np.ndarray) -> float:
+    """|z'| / |z| of the start state z = (x0, v0), z' = (v0, a0), taken per part so that units
+    do not mix: max(|v0| / |x0|, |a0| / |v0|, sqrt(|a0| / |x0|))."""
+    nx, nv, na = (float(np.abs(a).max(initial=0.0)) for a in (x0, v0, a0))
+    rates = []
+    if nx > 0:
+        rates += [nv / nx, math.sqrt(na / nx)]
+    if nv > 0:
+        rates.append(na / nv)
+    finite = [r for r in rates if math.isfinite(r)]
+    return max(finite) if finite else 0.0

@@ -19,9 +19,8 @@ from fem_dual.errors import SolveError
 from fem_dual.slab.local_action import BandedLU, LocalAction, _quiet
 from fem_dual.slab.snes import (NEWTON_DEFAULTS, NO_PROGRESS_RATIO, RESIDUAL_ROUNDOFF,
                              backward_floor, difference_step, residual_size,
-                             round_off_floor)
+                             round_off_floor, stalled)
 from fem_dual.slab.problem import SlabProblem
-from fem_dual.integrate.estimate import stalled
 
 __all__ = ["PointwiseNewtonSolver"]
 

@@ -21,10 +21,9 @@ from fem_dual.errors import SolveError
 from fem_dual.quiet import quiet_numpy
 from fem_dual.slab.problem import SlabProblem
 from fem_dual.slab.petsc_solvers import CompiledSlab, SolverOptions, direct_solver
-from fem_dual.integrate.estimate import stalled
 
 __all__ = ["NEWTON_DEFAULTS", "NewtonSlabSolver", "NO_PROGRESS_ITS", "RESIDUAL_ROUNDOFF",
-           "difference_step", "residual_size"]
+           "difference_step", "residual_size", "stalled"]
 
 _REASONS = {getattr(PETSc.SNES.ConvergedReason, name): name
             for name in dir(PETSc.SNES.ConvergedReason) if name.isupper()}
@@ -145,6 +144,14 @@ def difference_step(z0: np.ndarray, dz: np.ndarray, relative: float,
         j = int(np.flatnonzero(dz)[0])
         eps = float(z1[j] - z0[j]) / float(dz[j])
     return z1, eps
+
+
+def stalled(history: List[float], floor: float = 0.0) -> bool:
+    """Whether a Newton residual history stalled (three or more steps that reduced the residual
+    by less than a factor 0.9, counted while it is above the round-off `floor`) before it
+    converged: the solution it found may be another branch, and the slab is retried shorter."""
+    steps = [b / a for a, b in zip(history[:-1], history[1:]) if a > floor and a > 0]
+    return sum(r > 0.9 for r in steps) >= 3
 
 
 class NewtonSlabSolver(CompiledSlab):

@@ -1,0 +1,130 @@
+"""Command line: `fem-dual run | orbit | bench | flutter | stress | scenes`.
+
+Exit status: 0 success, 2 bad input (one line on stderr naming the value), 3 a failed solve or a
+failed write (the slabs completed before it are kept, in the output files and in the JSON with
+status "failed"), 130/143 stopped by SIGINT/SIGTERM after a slab (kept alike, status
+"interrupted"), 1 an internal error (under MPI it ends every rank); `stress` exits 1 when a case
+did not behave as it must.
+
+What answers without DOLFINx, PETSc or MPI (--help, --version, bad options): only the modules
+imported here load at start; a command imports what it needs.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sys
+from typing import TYPE_CHECKING, Dict, Optional, Sequence
+
+from fem_dual import faults
+from fem_dual.cli.parser import build_parser, join_negative_values, key_value
+from fem_dual.cli.streams import escaped, json_only_on_stdout, json_out, print0, rank, world
+from fem_dual.errors import InputError, SolveError
+
+if TYPE_CHECKING:  # annotations only
+    from mpi4py import MPI
+
+__all__ = ["main", "build_parser"]
+
+
+def main(argv: Optional[Sequence[str]] = None, comm: "Optional[MPI.Comm]" = None) -> int:
+    """The command line; returns the exit status. SIGINT/SIGTERM stop a run after the slab at
+    hand (fem_dual.faults) for as long as main runs, JSON printing included."""
+    with faults.graceful_signals():
+        return _main(argv, comm)
+
+
+def _main(argv: Optional[Sequence[str]], comm: "Optional[MPI.Comm]") -> int:
+    if argv is None and hasattr(signal, "SIGPIPE"):  # `fem-dual ... | head`: end quietly, as
+        signal.signal(signal.SIGPIPE, signal.SIG_DFL)  # Unix tools do (not PETSc's handler)
+    process = argv is None  # the command itself, not a call from Python
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = None
+    try:
+        args = build_parser().parse_args(join_negative_values(argv))
+        if process and getattr(args, "json", False):
+            json_only_on_stdout()
+        return _command(args, comm)
+    except InputError as exc:
+        print0(comm, f"fem-dual: error: {escaped(exc)}", file=sys.stderr)
+        return InputError.exit_status
+    except SolveError as exc:  # (run and orbit report their own)
+        from fem_dual.cli.run import failure_line
+
+        print0(comm, failure_line(exc), file=sys.stderr)
+        if args is not None and args.command == "flutter" and args.json:  # undecided search
+            print0(comm, json.dumps({"status": "failed", "message": str(exc)}),
+                   file=json_out(), flush=True)
+        return exc.exit_status
+    except Exception as exc:  # a bug: say so, and end every rank (others may wait for this one)
+        import traceback
+
+        traceback.print_exc()
+        comm = comm if comm is not None else _loaded_world()
+        print(f"fem-dual: internal error on rank {rank(comm)}: {escaped(exc)}",
+              file=sys.stderr)
+        if comm is not None and comm.size > 1:
+            comm.Abort(1)
+        return 1
+
+
+def _command(args, comm: "Optional[MPI.Comm]") -> int:
+    """Run the parsed command; its exit status."""
+    if args.command == "scenes":
+        from fem_dual.scenes import SCENES
+
+        print0(comm, "\n".join(cls.listing() for cls in SCENES.values()))
+        return 0
+    if args.command in ("run", "orbit"):  # orbit: a continuation stops between orbits
+        faults.arm()
+    _check_cache_home()
+    if getattr(args, "scene_file", None):
+        from fem_dual.scenes import load_scene_file
+
+        load_scene_file(args.scene_file)
+    params = _params(args)
+    if args.command == "run":
+        from fem_dual.cli.run import run
+
+        return run(args, params, comm)
+    if args.command == "orbit":
+        from fem_dual.cli.orbit import orbit
+
+        return orbit(args, params, comm)
+    from fem_dual.cli import analysis
+
+    comm = world(comm)
+    if args.command == "stress":
+        return analysis.stress(args, comm)
+    return getattr(analysis, args.command)(args, params, comm)  # bench, flutter
+
+
+def _params(args) -> Dict[str, str]:
+    """--param NAME=VALUE, each name once."""
+    params: Dict[str, str] = {}
+    for item in getattr(args, "param", []):
+        key, value = key_value(item, "--param")
+        if key in params:
+            raise InputError(f"--param {key} is given twice ({params[key]!r} and {value!r})")
+        params[key] = value
+    return params
+
+
+def _check_cache_home() -> None:
+    """InputError where the cache folder for compiled code cannot be one: FFCx (its `fenics`
+    folder) and fem_dual.native keep their libraries under $XDG_CACHE_HOME (default
+    ~/.cache), and a file there, or above it, ended every run in a traceback from the JIT."""
+    root = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    path = os.path.abspath(os.path.join(root, "fenics"))
+    while not os.path.exists(path) and os.path.dirname(path) != path:
+        path = os.path.dirname(path)  # the nearest part of it that exists
+    if not os.path.isdir(path):
+        raise InputError(f"{path} is not a directory, so the cache for compiled code "
+                         f"({root}: XDG_CACHE_HOME, default ~/.cache) cannot be made there")
+
+
+def _loaded_world():
+    """MPI's world communicator if MPI is loaded (a failure before it needs no Abort)."""
+    mpi = sys.modules.get("mpi4py.MPI")
+    return None if mpi is None else mpi.COMM_WORLD

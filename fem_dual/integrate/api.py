@@ -1,0 +1,48 @@
+"""`run`: a configuration in, a RunResult out (the library's entry point)."""
+from __future__ import annotations
+
+from mpi4py import MPI
+
+from fem_dual.config import RunConfig
+from fem_dual.errors import InputError, SolveError
+from fem_dual.integrate.result import RunResult
+from fem_dual.integrate.simulation import Simulation
+from fem_dual.output import check_output_dir_on_root
+
+__all__ = ["run", "RunResult", "Simulation"]
+
+
+def run(config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD, progress: bool = False,
+        resume: bool = False) -> RunResult:
+    """Solve the dual problem slab by slab, recover the primal motion, compare with the reference.
+
+    With `resume`, go on from the last slab an earlier run of the same options wrote into
+    `config.out` (the end state equals an uninterrupted run's).
+
+    Nonlinear scenes retry a slab whose Newton (or DtP map) fails with half its length, up to
+    `config.max_halvings` times; `progress` shows a bar over the slabs on stderr (rank 0).
+
+    Raises:
+        SolveError: a slab failed, or writing the output did; `partial` holds the result of the
+            slabs completed before, whose output files (if any) are readable.
+        fem_dual.faults.Interrupted: SIGINT/SIGTERM (with fem_dual.faults.graceful_signals)
+            stopped the run after a slab; `partial` as for SolveError.
+    """
+    if not isinstance(config, RunConfig):
+        raise InputError(f"config must be a RunConfig (RunConfig.create(...)), not "
+                         f"{type(config).__name__}")
+    config.scene.checked()  # a RunConfig built without create() is validated all the same
+    if resume and config.out is None:
+        raise InputError("resume needs the output directory of the run to go on with (--out)")
+    if config.out is not None:  # before any work: a bad --out is bad input, on every rank
+        check_output_dir_on_root(comm, config.out)
+    sim = Simulation.for_config(config, comm)
+    try:
+        result = sim.run(config, progress, resume)
+    except (SolveError, InputError):  # raised on every rank alike: close collectively
+        sim.close()
+        raise
+    # any other exception may be one rank's own: a collective close could hang, so its
+    # objects are left to petsc4py's garbage
+    sim.close()
+    return result

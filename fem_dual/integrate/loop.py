@@ -1,0 +1,339 @@
+"""The slab loop: step, judge, accept or reject, give the accepted slab to the sinks.
+
+Each slab starts from the primal state recovered at the end of the previous one. One step is one
+slab of the simulation (fem_dual.integrate.simulation: the answer, its companion and the tangent
+that carries the start state's error); rank 0 judges it (fem_dual.integrate.judge) and every
+rank learns the verdict; the controller (fem_dual.integrate.controller) accepts the slab and
+chooses the next length, or retries it shorter; the sinks (fem_dual.integrate.sinks) take the
+accepted slab. Linear scenes take chunks of equal slabs at once (fem_dual.integrate.chunks).
+Results live on rank 0 and are broadcast at the end, so every rank returns the same RunResult.
+"""
+from __future__ import annotations
+
+import signal
+import time
+from typing import TYPE_CHECKING, Any, Dict, List, Optional, Tuple
+
+import numpy as np
+from mpi4py import MPI
+
+from fem_dual import faults, native
+from fem_dual.config import STAGING_LIMIT, RunConfig
+from fem_dual.errors import SolveError, one_line
+from fem_dual.integrate.chunks import batch_step
+from fem_dual.integrate.controller import SlabSchedule, schedule_for, step_factor
+from fem_dual.integrate.estimate import ErrorWeights, output_request
+from fem_dual.integrate.judge import (GrowthBound, Verdict, check_resolution, judge, judged,
+                                      volume_kept)
+from fem_dual.integrate.restart import Restart
+from fem_dual.integrate.result import RunResult, t_eval_output, unvouched_output
+from fem_dual.integrate.sinks import AcceptedSlab, Accumulator, ProgressSink, XdmfSink
+from fem_dual.integrate.state import LoopState
+from fem_dual.mpi import allreduce, bcast, input_on_root, on_root
+from fem_dual.slab.base_state import motion_rate
+from fem_dual.slab.values import VertexValues
+
+if TYPE_CHECKING:
+    from fem_dual.integrate.simulation import Simulation
+
+__all__ = ["run_slabs"]
+
+
+def run_slabs(sim: "Simulation", config: RunConfig, progress: bool = False,
+              resume: bool = False) -> RunResult:
+    """Run `config` on the simulation `sim` (begun for it): the slab loop. Collective.
+
+    Raises:
+        SolveError: a slab failed, or writing the output did; `partial` holds the result of the
+            slabs completed before.
+        fem_dual.faults.Interrupted: a signal stopped the run after a slab.
+    """
+    run = _Run(sim, config, progress, resume)
+    schedule, state = run.schedule, run.state
+    failure: Optional[SolveError] = None
+    while failure is None and not schedule.done():
+        taken, failure = run.chunk()  # linear scenes: a chunk of equal slabs at once
+        if taken or failure is not None:
+            continue
+        t0, dt = schedule.current()
+        values, verdict = run.step(t0, dt)  # answer, companion, tangent; judged
+        if verdict.action == "retry" and schedule.halve(step_factor(verdict.err, run.order)):
+            run.rejected.append({"t0": t0, "dt": dt, "reason": verdict.reason})
+            continue
+        if verdict.action != "accept":
+            failure = run.refusal(verdict, t0, dt)
+            break
+        length = schedule.length
+        schedule.accept(step_factor(verdict.err, run.order))
+        state.settled = schedule.length == length
+        failure = run.record(values, verdict, t0, dt)  # the sinks; the next start state
+    return run.finish(failure)
+
+
+class _Run:
+    """One run of the slab loop: its sinks, error weights, guards, controller and where it
+    stands (`state`), and what the loop asks of them."""
+
+    def __init__(self, sim: "Simulation", config: RunConfig, progress: bool, resume: bool):
+        self.tic = time.perf_counter()
+        self.sim, self.config, self.comm = sim, config, sim.comm
+        scene, root = sim.scene, sim.comm.rank == 0
+        self.acc = Accumulator(config) if root else None
+        # bad or mismatched files to resume, an output directory that cannot take our files:
+        # bad input, on every rank
+        restart = input_on_root(self.comm, lambda: Restart(config, scene.name)) if resume \
+            else None
+        self.xdmf = None if config.out is None else input_on_root(
+            self.comm, lambda: XdmfSink(config, scene.name, restart))
+        self.bar = ProgressSink(config.T) if (progress and root) else None
+        self.sinks = [s for s in (self.acc, self.xdmf, self.bar) if s is not None]
+        self.timings = {"compile_s": sim.charged_setup(), "solve_s": 0.0, "estimate_s": 0.0,
+                        "recovery_s": 0.0, "output_s": 0.0}
+        start_rate = _start_rate(scene, config.x0, config.v0)
+        # a motion slower than the horizon (a particle at rest) relates |v| to |x| / T: else the
+        # round-off of its velocity would be the scale its velocity errors are measured against
+        self.weights = (ErrorWeights(config.tolerance, config.x0, config.v0,
+                                     max(start_rate, 1 / config.T)) if root else None)
+        # the zero base damps what the slabs do not resolve: no resolution guard, no growth bound
+        self.guarded = scene.linear and config.base_state != "zero"
+        self.rate = scene.fastest_rate(config.x0, config.v0) if (
+            self.guarded or (scene.linear and config.rtol is not None)) else None
+        self.bound = GrowthBound(scene, config.x0, config.v0) if (self.guarded and root) \
+            else None
+        self.schedule = schedule_for(config, sim.cells,
+                                     start_rate if self.rate is None else self.rate)
+        self.order = 2 * config.degree  # the local error per unit of time goes like dt^(2p)
+        self.state = LoopState(config)
+        if resume:
+            self.state.resume(self.comm, restart, self.acc, self.weights, self.schedule)
+        self.rejected: List[Dict[str, Any]] = []
+
+    def _resolved(self, dt: float) -> None:
+        """SolveError when a linear slab of length dt is under-resolved (`check_resolution`)."""
+        if self.guarded:
+            check_resolution(self.rate, dt, self.sim.cells, self.config.degree)
+
+    def chunk(self) -> Tuple[int, Optional[SolveError]]:
+        """Linear scenes: a chunk of equal slabs from the slab maps (fem_dual.integrate.chunks);
+        (slabs taken, the failure that ends the run or None). Collective."""
+        tic = time.perf_counter()
+        state, schedule = self.state, self.schedule
+        taken, failure = batch_step(self.sim, self.config, state, schedule, self.weights,
+                                    self.bound, self.sinks,
+                                    lambda: self._resolved(schedule.current()[1]))
+        self.timings["solve_s"] += time.perf_counter() - tic
+        if taken and failure is None:
+            state.batched += taken
+            failure = _interruption(self.comm, schedule, state.k - 1, self.config.T)
+        return taken, failure
+
+    def step(self, t0: float, dt: float) -> Tuple[Optional[VertexValues], Verdict]:
+        """Solve the slab [t0, t0 + dt] from the current start state with its error estimate,
+        and judge it: (its vertex values on rank 0, the verdict on every rank). Collective."""
+        sim, z, d = self.sim, self.state.z, self.state.d
+        tic = time.perf_counter()
+        vals = None
+        try:
+            self._resolved(dt)
+            vals = sim.solve_slab(z, t0, dt)
+            suspicious = sim.verify()
+            if suspicious:
+                raise SolveError(suspicious)
+            t2 = time.perf_counter()
+            algebraic = sim.algebraic_error(z, vals)
+            # (no error carried in: none to propagate, the estimate is the local one)
+            psi = sim.tangent(z, d, t0, dt, vals) if d.any() else None
+            lost = sim.unresolved(z, dt)
+            companion = sim.companion.solve_slab(z, t0, dt, start=sim)
+            self.timings["estimate_s"] += time.perf_counter() - t2
+            config = self.config
+            verdict = judged(self.comm, lambda: judge(
+                vals, companion, algebraic, psi, lost, self.weights, self.bound, t0, dt,
+                config.T, output_request(config)))
+            if verdict.action == "accept" and not sim.scene.linear:
+                verdict = volume_kept(sim, z, t0, dt, vals, verdict)
+        except SolveError as exc:
+            verdict = Verdict("retry", None, str(exc))
+        self.timings["solve_s"] += time.perf_counter() - tic
+        return vals, verdict
+
+    def refusal(self, verdict: Verdict, t0: float, dt: float) -> SolveError:
+        """The failure that ends the run at a slab that is neither accepted nor retried."""
+        what = {"refuse": "; cannot vouch for the answer", "retry": "; no shorter slab left",
+                "error": ""}[verdict.action]
+        advice = "" if verdict.action == "error" else f"; {_advice(self.config)}"
+        k = self.state.k
+        return SolveError(f"slab {k} (t = {t0:g} .. {t0 + dt:g}): {verdict.reason}{what}"
+                          + advice, slab=k)
+
+    def record(self, vals: Optional[VertexValues], verdict: Verdict, t0: float,
+               dt: float) -> Optional[SolveError]:
+        """Give the accepted slab to the sinks (rank 0) and move the start state and its error
+        to its end: the failure that ends the run (output, a signal) or None. Collective."""
+        state, schedule, weights = self.state, self.schedule, self.weights
+        state.lengths.append(dt)
+        k = state.k
+        state.k += 1
+
+        def add() -> Tuple[np.ndarray, np.ndarray]:
+            """The sinks take the slab; the next slab's start state and its error."""
+            weights.record(vals.x, vals.v)
+            slab = AcceptedSlab(k, t0, dt, vals, verdict.estimate, schedule.state,
+                                (weights.scale_x, weights.scale_v))
+            for sink in self.sinks:
+                sink.add(slab)
+            return np.concatenate([vals.x[-1], vals.v[-1]]), verdict.estimate.glob[-1].copy()
+        nxt, problem = on_root(self.comm, add)
+        failure = _interruption(self.comm, schedule, k, self.config.T)
+        shared = None
+        if self.comm.rank == 0:
+            shared = (state.z, state.d, problem) if problem else (*nxt, None)
+        state.z, state.d, problem = bcast(self.comm, shared)
+        if problem:
+            where = f" ({self.config.out})" if self.config.out is not None else ""
+            return SolveError(f"slab {k} (t = {t0:g} .. {t0 + dt:g}): writing the output "
+                              f"failed{where}: {problem}", slab=k)
+        return failure
+
+    def finish(self, failure: Optional[SolveError]) -> RunResult:
+        """Close the sinks and make the result (the same on every rank); raises the failure
+        with the result of the slabs completed before it as `partial`."""
+        if self.bar is not None:
+            self.bar.close()
+        result = None
+        if self.comm.rank == 0:
+            arrays = self.acc.arrays(self.sim.scene.n)  # t, x, v
+            files, failure = self._close_output(failure, arrays)
+            result = self._result(files, arrays)
+            if failure is not None:
+                interrupted = isinstance(failure, faults.Interrupted)
+                result.status = "interrupted" if interrupted else "failed"
+                result.message = str(failure)
+        failure = _shared_failure(self.comm, failure)
+        result = bcast(self.comm, result)
+        config = self.config
+        result.scene_object = config.scene
+        if config.t_eval is not None:
+            result.t_eval = t_eval_output(result, config)
+            if failure is None:
+                failure = unvouched_output(result, config)
+        if failure is not None:
+            failure.partial = result
+            raise failure
+        return result
+
+    def _close_output(self, failure: Optional[SolveError], arrays: tuple
+                      ) -> Tuple[List[str], Optional[SolveError]]:
+        """Rank 0: close the XDMF sink (the trajectory `arrays` t, x, v); (its files, the run's
+        failure with its own added)."""
+        if self.xdmf is None:
+            return [], failure
+        try:
+            files = self.xdmf.close(*arrays)
+        except Exception as exc:  # noqa: BLE001 -- a failure of its own, reported as one
+            closing = f"writing the output failed ({self.config.out}): {one_line(exc)}"
+            if failure is None:
+                failure = SolveError(closing, slab=self.state.k)
+            else:
+                failure.args = (f"{failure}; {closing}",)
+            files = self.xdmf.files_on_disk()
+        self.timings["output_s"] = self.xdmf.seconds
+        return files, failure
+
+    def _result(self, files: List[str], arrays: tuple) -> RunResult:
+        """Rank 0: the RunResult of the slabs accepted (`arrays`: their t, x, v)."""
+        sim, config, acc, state, weights = self.sim, self.config, self.acc, self.state, \
+            self.weights
+        timings = self.timings
+        timings["reference_s"] = acc.reference_s
+        timings["total_s"] = time.perf_counter() - self.tic + timings["compile_s"]
+        t, x, v = arrays
+        tol, lengths = config.tolerance, state.lengths
+        result = RunResult(
+            scene=sim.scene.name, parameters=sim.scene.parameters(), T=config.T,
+            cells=config.cells, degree=config.degree,
+            slabs=config.slabs if config.rtol is None else len(lengths),
+            x0=config.x0.tolist(), v0=config.v0.tolist(), dofs_per_slab=sim.backend.num_dofs,
+            t=t, x=x, v=v, error=acc.error(), hamiltonian=acc.hamiltonian(), timings=timings,
+            solver=self._solver_record(), slab_lengths=lengths, output_files=files,
+            staging={"mode": config.staging, "stages_per_slab": config.stages,
+                     "solved_slabs": len(lengths), "cells_per_solved_slab": config.slab_cells,
+                     "limit_cells_times_degree_squared": STAGING_LIMIT},
+            recovery=config.recovery, error_estimate=acc.estimate_max(),
+            estimate=acc.estimate(),
+            tolerance={"rtol": tol.rtol, "atol": tol.atol, "adaptive": tol.adaptive,
+                       "scale_x": weights.scale_x, "scale_v": weights.scale_v})
+        result.output_slabs = None if self.xdmf is None else self.xdmf.slabs_written
+        if acc.est_rows:
+            result.estimate_at_t = np.concatenate(acc.est_rows)
+        if acc.err_rows:
+            result.error_at_t = np.concatenate(acc.err_rows)
+        return result
+
+    def _solver_record(self) -> Dict[str, Any]:
+        """The JSON `solver` record: the backend's, and what the loop did."""
+        sim, scene, config = self.sim, self.sim.scene, self.config
+        record = sim.backend.record(sim.prefix)
+        record["halved_slabs"] = self.rejected
+        record["rejected_slabs"] = len(self.rejected)
+        record["superposition"] = sim.superposition is not None
+        record["batched_slabs"] = self.state.batched
+        record["estimates"] = self.acc.estimates
+        record["companion_degree"] = sim.companion.degree
+        if scene.linear:
+            record["weighting"] = scene.weighting()
+        record["assembly"] = sim.backend.assembly
+        record["base"] = config.base_state
+        record["compiled_loops"] = sim.backend.compiled_loops()
+        record["compiled_loops_unavailable"] = native.reason()  # why none ran, or None
+        if scene.linear:
+            record["coordinates"] = "modal" if sim.modal is not None else "physical"
+        record["slab_solves"] = sim.solves()
+        record["companion_solves"] = sim.companion.solves()
+        record["tangent_solves"] = sim.tangent_solves
+        record["resumed_from"] = self.state.resumed_from
+        return record
+
+
+def _start_rate(scene, x0: np.ndarray, v0: np.ndarray) -> float:
+    """|z'| / |z| at the start (motion_rate), from the scene's acceleration there."""
+    if scene.linear:
+        a0 = (scene.first_order_matrix() @ np.concatenate([x0, v0]))[scene.n:]
+    else:
+        F, d = np.asarray(scene.force_numpy(x0), dtype=float), scene.mass_diagonal()
+        a0 = F / d if d is not None else np.linalg.solve(scene.mass_matrix(), F)
+    return motion_rate(x0, v0, a0)
+
+
+def _advice(config: RunConfig) -> str:
+    if config.rtol is None:
+        return ("use more slabs or cells per slab, a higher degree, or --rtol to choose the "
+                "slab lengths")
+    return "loosen --rtol, or raise --cells or --degree"
+
+
+def _interruption(comm: MPI.Comm, schedule: SlabSchedule, k: int,
+                  T: float) -> Optional[faults.Interrupted]:
+    """The stop a signal asked for (on any rank) after slab k, unless the run is done.
+    Collective."""
+    signum = faults.requested()
+    if comm.size > 1:
+        signum = allreduce(comm, signum, "max")
+    if not signum or schedule.done():
+        return None
+    t = schedule.current()[0]
+    return faults.Interrupted(f"interrupted by {signal.Signals(signum).name} after slab {k} "
+                              f"(t = {t:g} of T = {T:g})", signum, slab=k)
+
+
+def _shared_failure(comm: MPI.Comm, failure: Optional[SolveError]) -> Optional[SolveError]:
+    """Rank 0's failure (a failed close is known there only) on every rank."""
+    if comm.size == 1:
+        return failure
+    what = None if failure is None else (
+        str(failure), failure.slab, getattr(failure, "signum", None))
+    what = comm.bcast(what if comm.rank == 0 else None, root=0)
+    if what is None:
+        return None
+    message, slab, signum = what
+    return faults.Interrupted(message, signum, slab) if signum else SolveError(message, slab)
