@@ -113,10 +113,10 @@ def run_auto(ntst: int, work: Path):
 
 
 def fem_dual_orbit(start: np.ndarray, period: float, degree: int, cells: int):
-    from fem_dual.config import _scene
+    from fem_dual.inputs import scene_of
     from fem_dual.analysis.orbit import Orbits
 
-    scene = _scene("force", {"F": f"-x - {A}*y**2, -2*y - {A}*x**2"})
+    scene = scene_of("force", {"F": f"-x - {A}*y**2, -2*y - {A}*x**2"})
     orbits, companion = Orbits(scene, degree, cells), Orbits(scene, degree + 1, cells)
     try:  # the first solve compiles what a solve needs; the second is timed
         for _ in range(2):

@@ -13,7 +13,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 import fem_dual.integrate.dense as dense  # noqa: E402
-from fem_dual.config import _scene  # noqa: E402
+from fem_dual.inputs import scene_of  # noqa: E402
 
 CASES = [("force", {"F": "-100*x"}, [1.0], [0.0], 2.0),
          ("force", {"F": "-x - x**3"}, [1.5], [0.0], 10.0),
@@ -28,7 +28,7 @@ def main() -> None:
     dense.GAP_SAFETY = parser.parse_args().safety
     print("scene   force                       intervals  max error  max estimate  ratio")
     for name, params, x0, v0, T in CASES:
-        scene = _scene(name, params)
+        scene = scene_of(name, params)
         x0 = np.array(x0 if x0 is not None else scene.default_x0, dtype=float)
         v0 = np.array(v0 if v0 is not None else scene.default_v0, dtype=float)
         for intervals in (4, 8, 16, 32, 64, 128):

@@ -20,7 +20,7 @@ import numpy as np
 import scipy.linalg as sla
 from mpi4py import MPI
 
-from fem_dual.config import _scene
+from fem_dual.inputs import scene_of
 from fem_dual.analysis.orbit import orbit_family
 
 comm = MPI.COMM_WORLD
@@ -33,13 +33,13 @@ out = Path("out_orbits")
 # +
 def curl_family():
     force = {"F": "-x - a*y**2, -2*y - a*x**2", "a": 0.0}
-    scene = _scene("force", force)
+    scene = scene_of("force", force)
     return orbit_family(scene, force, np.array([0.5, 0.0]), np.zeros(2), 6.3, degree=4,
                         cells=48, continuation=("a", np.linspace(0.0, 1.0, 11)))
 
 
 def ziegler_family():
-    scene = _scene("ziegler", {"P": 0.0})
+    scene = scene_of("ziegler", {"P": 0.0})
     lam, V = sla.eig(scene.stiffness_matrix(), scene.mass_matrix())
     slow = V.real[:, int(np.argmin(lam.real))]
     return orbit_family(scene, {}, 0.1 * slow / np.abs(slow).max(), np.zeros(2),
@@ -65,7 +65,7 @@ if comm.rank == 0:
 if comm.rank == 0:
     ziegler = ziegler_family()
     for step in ziegler["continuation"]:
-        scene = _scene("ziegler", {"P": step["P"]})
+        scene = scene_of("ziegler", {"P": step["P"]})
         lam = sla.eigvals(scene.stiffness_matrix(), scene.mass_matrix())
         exact = 2 * np.pi / np.sqrt(lam.real.min())
         line = f"P = {step['P']:4.2f}: period {step['period']:.12f}"
@@ -103,8 +103,8 @@ if comm.rank == 0:
     axes[2].plot([s["P"] for s in ok], [s["period"] for s in ok], "o", label="fem-dual orbit")
     P = np.linspace(0.0, 2.08, 200)
     exact = [2 * np.pi / np.sqrt(sla.eigvals(
-        _scene("ziegler", {"P": p}).stiffness_matrix(),
-        _scene("ziegler", {"P": p}).mass_matrix()).real.min()) for p in P]
+        scene_of("ziegler", {"P": p}).stiffness_matrix(),
+        scene_of("ziegler", {"P": p}).mass_matrix()).real.min()) for p in P]
     axes[2].plot(P, exact, "-", label="2 pi / omega (eigenvalues)")
     axes[2].axvline(3.5 - np.sqrt(2), color="grey", ls=":", label="flutter load")
     axes[2].set(title="Ziegler: slow-mode period", xlabel="P", ylabel="period")

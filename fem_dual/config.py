@@ -3,21 +3,20 @@ from __future__ import annotations
 
 import functools
 import math
-import numbers
-import os
-from collections.abc import Mapping as abc_Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, Mapping, Optional, Sequence, Union
+from typing import Any, Dict, Mapping, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from fem_dual.slab.base_state import stiff_at_start
-from fem_dual.errors import InputError
 from fem_dual.choices import BASES, RECOVERIES
-from fem_dual.scenes import Scene, get_scene
-from fem_dual.scenes.base import (DENSE_BUDGET, DENSE_WORDS, MAX_DOFS, STATE_MAX, parse_number,
-                                  parse_vector, show)
+from fem_dual.errors import InputError
+from fem_dual.inputs import (MIN_T, ROUNDOFF_REL, Number, choice, output_path, parse_times,
+                             petsc_options, scene_of, tolerance_value, whole_number,
+                             within_state_max)
+from fem_dual.scenes import Scene
+from fem_dual.scenes.base import DENSE_BUDGET, DENSE_WORDS, MAX_DOFS, parse_number, parse_vector
+from fem_dual.slab.base_state import stiff_at_start
 
 __all__ = ["RunConfig", "Tolerance", "REFUSE_RELATIVE", "ACCEPT_GLOBAL", "ROUNDOFF_REL",
            "MAX_VERTICES", "MAX_DEGREE", "STAGING_LIMIT", "MAX_DOFS", "DENSE_BUDGET", "DENSE_WORDS"]
@@ -31,9 +30,6 @@ REFUSE_RELATIVE = 1e-3
 # run is refused (the local errors are controlled; growth of the motion can still amplify them).
 ACCEPT_GLOBAL = 10.0
 
-# The estimate does not resolve errors below this fraction of the motion's scale (round-off of
-# the assembled slab systems and of the recovery): it reports at least this much.
-ROUNDOFF_REL = 1e-12
 
 
 @dataclass(frozen=True)
@@ -90,154 +86,34 @@ def auto_pointwise(scene, cells: int, degree: int, petsc: Optional[Mapping[str, 
     return not user_options(solver_prefix(scene.name), petsc)
 COORDINATES = ("auto", "physical", "modal")
 REFERENCES = ("auto", "none")
-MAX_TIMES = 1_000_000  # --t-eval: at most this many times
 MODAL_MAX_DOFS = 2000  # auto: the O(n^3) modes of larger systems cost more than they save
 # Every scene has at most MAX_DOFS = 1448 dofs (fem_dual.scenes.base, the memory rule: its dense
 # n x n matrices, DENSE_WORDS of them at the peak of a run, within DENSE_BUDGET = 2 GiB),
 # checked before anything sized by n is allocated.
 KRONECKER_MIN_DOFS = 5  # auto: linear scenes from this many dofs take the Kronecker path
 
-Number = Union[int, float, str]
 
 
-def _quoted(value) -> str:
-    """The repr of a value, on one short line (a string keeps its quotes, a list its brackets)."""
-    return show(repr(value))
 
 
-def _whole_number(name: str, value: Number, minimum: int = 1) -> int:
-    if not isinstance(value, (str, numbers.Real)) or isinstance(value, (bool, np.bool_)):
-        raise InputError(f"{name}={_quoted(value)} is not a whole number")
-    text = str(value).strip()
-    try:
-        as_float = float(text)
-    except ValueError:
-        raise InputError(f"{name}={_quoted(text)} is not a whole number") from None
-    if not math.isfinite(as_float) or as_float != int(as_float):
-        raise InputError(f"{name}={_quoted(text)} is not a whole number")
-    if int(as_float) < minimum:
-        raise InputError(f"{name}={_quoted(text)} must be at least {minimum}")
-    return int(as_float)
 
 
-def _choice(name: str, value, choices: Sequence[str]) -> str:
-    """`value` if it is one of `choices` (strings), else InputError naming `name`."""
-    if not isinstance(value, str) or value not in choices:
-        raise InputError(f"{name}={_quoted(value)} is not one of {', '.join(choices)}")
-    return value
 
 
-def _within_state_max(what: str, values: np.ndarray, advice: str) -> None:
-    """InputError when an entry of `values` (the start state, the force there) exceeds
-    STATE_MAX, where the dual action's squares overflow (it ended as a Newton failure with an
-    infinite residual, exit 3)."""
-    size = float(np.abs(values).max(initial=0.0))
-    if size > STATE_MAX:
-        raise InputError(f"{what}: an entry of size {size:.3g} is beyond {STATE_MAX:g}, where "
-                         f"the dual action's squares overflow; {advice}")
 
 
-def _scene(scene, params) -> Scene:
-    """The validated scene of `scene`: a name (with `params`), a Scene class (with `params`) or a
-    Scene object (without), which is validated like one built from its name."""
-    if isinstance(scene, str):
-        return get_scene(scene).from_params(params)
-    if isinstance(scene, type) and issubclass(scene, Scene):
-        return scene.from_params(params)
-    if isinstance(scene, Scene):
-        if params is not None and (not isinstance(params, abc_Mapping) or len(params)):
-            raise InputError("give parameters with the scene name, not with a Scene object")
-        return scene.checked()
-    raise InputError(f"scene must be a scene name or a Scene object, not {_what(scene)}")
 
 
-def _what(value) -> str:
-    """A value named by what it is: None, or its type and short repr."""
-    return "None" if value is None else f"{type(value).__name__} {_quoted(value)}"
 
 
-def _out(out) -> Optional[Path]:
-    if out is None:
-        return None
-    if (not isinstance(out, (str, os.PathLike)) or isinstance(out, bytes)
-            or isinstance(os.fspath(out), bytes)):
-        raise InputError(f"out must be a path, not {_what(out)}")
-    text = os.fspath(out)
-    if not text.strip() or "\0" in text:
-        raise InputError(f"out must be a path, not {_quoted(text)}")
-    return Path(text)
 
 
-def _petsc(petsc) -> Dict[str, str]:
-    """PETSc options as NAME -> text; values strings, or numbers and booleans spelt for PETSc."""
-    if petsc is None:
-        return {}
-    if not isinstance(petsc, abc_Mapping):
-        raise InputError(f"petsc must be a mapping of option names to values, not "
-                         f"{type(petsc).__name__}")
-    options = {}
-    for key, value in petsc.items():
-        if not isinstance(key, str):
-            raise InputError(f"petsc: option name {_quoted(key)} is not a string")
-        key = key.lstrip("-")
-        if not key or any(ch.isspace() for ch in key):
-            raise InputError(f"PETSc option {key!r} is not an option name")
-        if isinstance(value, (bool, np.bool_)):
-            value = "true" if value else "false"
-        elif isinstance(value, (int, np.integer)):
-            value = str(int(value))
-        elif isinstance(value, (float, np.floating)):
-            if not math.isfinite(value):
-                raise InputError(f"petsc: option {key}={value!r} is not finite")
-            value = repr(float(value))
-        elif not isinstance(value, str):
-            raise InputError(f"petsc: option {key} has the value {_what(value)}; give a "
-                             "string ('' for a flag), a number or a boolean")
-        options[key] = value
-    return options
 
 
-def _tolerance(name: str, value: Number) -> float:
-    """A tolerance: finite, positive and below 1; a relative one no finer than the error
-    estimate resolves (ROUNDOFF_REL of the motion's scale)."""
-    tol = parse_number(name, value)
-    if not 0.0 < tol < 1.0:
-        raise InputError(f"{name}={value!r} must lie between 0 and 1 (exclusive)")
-    if name == "rtol" and tol < ROUNDOFF_REL:
-        raise InputError(f"rtol={value!r} is below what the error estimate resolves "
-                         f"({ROUNDOFF_REL:g} of the motion's scale)")
-    return tol
 
 
-def parse_times(text: "str | Sequence[float]", T: float) -> np.ndarray:
-    """Times in [0, T] from "t1,t2,..." or "START:STOP:COUNT" (COUNT equispaced, both ends
-    included), or a sequence of numbers; InputError naming the bad piece."""
-    if isinstance(text, str) and ":" in text:
-        parts = text.split(":")
-        if len(parts) != 3:
-            raise InputError(f"t-eval={text!r} is not START:STOP:COUNT")
-        start, stop = parse_number("t-eval start", parts[0]), parse_number("t-eval stop", parts[1])
-        count = _whole_number("t-eval count", parts[2])
-        if count > MAX_TIMES:
-            raise InputError(f"t-eval count={count} is too large (at most {MAX_TIMES})")
-        times = np.linspace(start, stop, count)
-    else:
-        if isinstance(text, (abc_Mapping, set, frozenset, bytes, bool, np.bool_)):
-            raise InputError(f"t-eval={_quoted(text)} is not a list of times")
-        items = (text.split(",") if isinstance(text, str)
-                 else list(np.ravel(np.asarray(text, dtype=object))))
-        if not items:
-            raise InputError("t-eval has no times")
-        if len(items) > MAX_TIMES:
-            raise InputError(f"t-eval has {len(items)} times (at most {MAX_TIMES})")
-        times = np.array([parse_number("t-eval", item) for item in items])
-    bad = times[(times < 0) | (times > T)]
-    if len(bad):
-        raise InputError(f"t-eval time {bad[0]!r} lies outside [0, T={T:g}]")
-    return times
 
 
-MIN_T = 1e-150  # shorter final times overflow 1/dt^2 in the forms (and subnormals lose digits)
 
 
 @dataclass(frozen=True)
@@ -355,82 +231,20 @@ class RunConfig:
         With `rtol` (and optionally `atol`) the slab lengths are chosen by the error estimate
         so that the estimated error stays within atol + rtol * scale (see fem_dual.integrate.estimate);
         `slabs` is then only the first guess's upper bound and must be left at 1."""
-        scene = _scene(scene, params)
-        T_value = scene.default_T if T is None else parse_number("T", T)
-        if not T_value > 0:
-            raise InputError(f"T={T!r} must be positive")
-        if T_value < MIN_T:  # the forms divide by the slab length and by its square
-            raise InputError(f"T={T!r} is too small (at least {MIN_T:g}: 1/T^2 must not "
-                             "overflow)")
-        cells_ = _whole_number("cells", cells)
-        degree_ = _whole_number("degree", degree)
-        slabs_ = _whole_number("slabs", slabs)
-        if degree_ > MAX_DEGREE:
-            raise InputError(f"degree={degree_} is too large (at most {MAX_DEGREE})")
-        if cells_ * slabs_ > MAX_VERTICES:
-            raise InputError(f"cells={cells_} x slabs={slabs_} = {cells_ * slabs_} time cells is "
-                             f"too large (at most {MAX_VERTICES})")
-        n = scene.n
-        x0_ = parse_vector("x0", scene.default_x0 if x0 is None else x0, n)
-        v0_ = parse_vector("v0", scene.default_v0 if v0 is None else v0, n)
-        for name, value in (("x0", x0_), ("v0", v0_)):
-            _within_state_max(f"{name}={','.join(map(repr, map(float, value)))}", value,
-                              "rescale the coordinates")
-        out_ = _out(out)
-        petsc_ = _petsc(petsc)
-        halvings = _whole_number("max-halvings", max_halvings, minimum=0)
+        scene = scene_of(scene, params)
+        T_value = _horizon(scene, T)
+        cells_, degree_, slabs_ = _discretisation(cells, degree, slabs)
+        x0_, v0_ = _start_state(scene, x0, v0)
+        out_, petsc_ = output_path(out), petsc_options(petsc)
+        halvings = whole_number("max-halvings", max_halvings, minimum=0)
         if halvings > 30:
             raise InputError(f"max-halvings={max_halvings!r} is too large (at most 30)")
-        _choice("superpose", superpose, SUPERPOSE)
-        if superpose == "yes" and not scene.linear:
-            raise InputError(f"superpose=yes needs a linear scene ({scene.name} is nonlinear)")
-        _choice("staging", staging, STAGING)
-        _choice("recovery", recovery, RECOVERIES)
-        _choice("assembly", assembly, ASSEMBLY)
-        if assembly == "kronecker" and not scene.linear:
-            raise InputError(f"assembly=kronecker needs a linear scene ({scene.name} is "
-                             "nonlinear)")
-        if assembly == "pointwise" and petsc_:
-            raise InputError("assembly=pointwise uses no PETSc solver: the PETSc options ("
-                             + ", ".join(f"{k}={v}" for k, v in petsc_.items())
-                             + ") need assembly=forms")
-        if assembly == "kronecker" and recovery != "momentum":
-            raise InputError("assembly=kronecker recovers the motion from the momenta only "
-                             f"(recovery={recovery!r})")
-        _choice("base", base, ("auto",) + BASES)
-        if assembly == "kronecker" and base == "predictor":
-            raise InputError("base=predictor needs assembly=forms (the Kronecker form holds the "
-                             "start or zero base only)")
-        if base == "rk4" and scene.linear:
-            raise InputError(f"base=rk4 is for nonlinear scenes ({scene.name} is linear: its "
-                             "slabs are solved by superposition from the start or zero base)")
-        _choice("coordinates", coordinates, COORDINATES)
-        if coordinates == "modal":
-            if not scene.linear:
-                raise InputError(f"coordinates=modal needs a linear scene ({scene.name} is "
-                                 "nonlinear)")
-            from fem_dual.slab.modal import modal_obstacle
-
-            obstacle = modal_obstacle(scene)
-            if obstacle:
-                raise InputError(f"coordinates=modal: {obstacle}")
-        _choice("reference", reference, REFERENCES)
+        _check_choices(scene, petsc_, superpose, staging, recovery, assembly, base, coordinates,
+                       reference)
         times = None if t_eval is None else parse_times(t_eval, T_value)
-        if not scene.linear:  # the force must be finite where the motion starts
-            with np.errstate(all="ignore"):
-                f0 = np.asarray(scene.force_numpy(x0_), dtype=float)
-            if f0.shape != (n,) or not np.isfinite(f0).all():
-                raise InputError(f"the force is not finite at x0={','.join(map(repr, x0_))} "
-                                 f"(F = {','.join(map(str, np.ravel(f0)))})")
-            _within_state_max(f"the force at x0={','.join(map(repr, map(float, x0_)))}", f0,
-                              "rescale the force or the coordinates")
-        rtol_ = None if rtol is None else _tolerance("rtol", rtol)
-        if atol is not None and rtol is None:
-            raise InputError(f"atol={atol!r} needs rtol (atol alone sets no tolerance)")
-        atol_ = 0.0 if atol is None else _tolerance("atol", atol)
-        if rtol_ is not None and slabs_ != 1:
-            raise InputError(f"slabs={slabs!r} and rtol={rtol!r} contradict each other: rtol "
-                             "chooses the slab lengths")
+        if not scene.linear:
+            _force_at_start(scene, x0_)
+        rtol_, atol_ = _tolerances(rtol, atol, slabs, slabs_)
         config = cls(scene, T_value, cells_, degree_, slabs_, x0_, v0_, out_, petsc_, halvings,
                      superpose, staging, recovery, assembly, rtol_, atol_, base, coordinates,
                      reference, times)
@@ -468,3 +282,104 @@ class RunConfig:
             raise InputError(f"assembly=pointwise uses no PETSc solver: the PETSc options "
                              f"({given}, from PETSC_OPTIONS) need assembly=forms")
         check_user_options(prefix, self.petsc, path)
+
+
+def _horizon(scene: Scene, T: Optional[Number]) -> float:
+    """The final time: the scene's default, or a positive number whose 1/T^2 is finite."""
+    T_value = scene.default_T if T is None else parse_number("T", T)
+    if not T_value > 0:
+        raise InputError(f"T={T!r} must be positive")
+    if T_value < MIN_T:  # the forms divide by the slab length and by its square
+        raise InputError(f"T={T!r} is too small (at least {MIN_T:g}: 1/T^2 must not "
+                         "overflow)")
+    return T_value
+
+
+def _discretisation(cells: Number, degree: Number, slabs: Number) -> Tuple[int, int, int]:
+    """(cells, degree, slabs) as whole numbers within their limits."""
+    cells_ = whole_number("cells", cells)
+    degree_ = whole_number("degree", degree)
+    slabs_ = whole_number("slabs", slabs)
+    if degree_ > MAX_DEGREE:
+        raise InputError(f"degree={degree_} is too large (at most {MAX_DEGREE})")
+    if cells_ * slabs_ > MAX_VERTICES:
+        raise InputError(f"cells={cells_} x slabs={slabs_} = {cells_ * slabs_} time cells is "
+                         f"too large (at most {MAX_VERTICES})")
+    return cells_, degree_, slabs_
+
+
+def _start_state(scene: Scene, x0, v0) -> Tuple[np.ndarray, np.ndarray]:
+    """(x0, v0): the scene's defaults or the given vectors, within STATE_MAX."""
+    n = scene.n
+    x0_ = parse_vector("x0", scene.default_x0 if x0 is None else x0, n)
+    v0_ = parse_vector("v0", scene.default_v0 if v0 is None else v0, n)
+    for name, value in (("x0", x0_), ("v0", v0_)):
+        within_state_max(f"{name}={','.join(map(repr, map(float, value)))}", value,
+                         "rescale the coordinates")
+    return x0_, v0_
+
+
+def _check_choices(scene: Scene, petsc: Dict[str, str], superpose: str, staging: str,
+                   recovery: str, assembly: str, base: str, coordinates: str,
+                   reference: str) -> None:
+    """Each choice is one of its values, and the choices fit the scene and each other."""
+    choice("superpose", superpose, SUPERPOSE)
+    if superpose == "yes" and not scene.linear:
+        raise InputError(f"superpose=yes needs a linear scene ({scene.name} is nonlinear)")
+    choice("staging", staging, STAGING)
+    choice("recovery", recovery, RECOVERIES)
+    choice("assembly", assembly, ASSEMBLY)
+    if assembly == "kronecker" and not scene.linear:
+        raise InputError(f"assembly=kronecker needs a linear scene ({scene.name} is "
+                         "nonlinear)")
+    if assembly == "pointwise" and petsc:
+        raise InputError("assembly=pointwise uses no PETSc solver: the PETSc options ("
+                         + ", ".join(f"{k}={v}" for k, v in petsc.items())
+                         + ") need assembly=forms")
+    if assembly == "kronecker" and recovery != "momentum":
+        raise InputError("assembly=kronecker recovers the motion from the momenta only "
+                         f"(recovery={recovery!r})")
+    choice("base", base, ("auto",) + BASES)
+    if assembly == "kronecker" and base == "predictor":
+        raise InputError("base=predictor needs assembly=forms (the Kronecker form holds the "
+                         "start or zero base only)")
+    if base == "rk4" and scene.linear:
+        raise InputError(f"base=rk4 is for nonlinear scenes ({scene.name} is linear: its "
+                         "slabs are solved by superposition from the start or zero base)")
+    choice("coordinates", coordinates, COORDINATES)
+    if coordinates == "modal":
+        if not scene.linear:
+            raise InputError(f"coordinates=modal needs a linear scene ({scene.name} is "
+                             "nonlinear)")
+        from fem_dual.slab.modal import modal_obstacle
+
+        obstacle = modal_obstacle(scene)
+        if obstacle:
+            raise InputError(f"coordinates=modal: {obstacle}")
+    choice("reference", reference, REFERENCES)
+
+
+def _force_at_start(scene: Scene, x0: np.ndarray) -> None:
+    """A nonlinear scene's force must be finite, and within STATE_MAX, where the motion
+    starts."""
+    with np.errstate(all="ignore"):
+        f0 = np.asarray(scene.force_numpy(x0), dtype=float)
+    if f0.shape != (scene.n,) or not np.isfinite(f0).all():
+        raise InputError(f"the force is not finite at x0={','.join(map(repr, x0))} "
+                         f"(F = {','.join(map(str, np.ravel(f0)))})")
+    within_state_max(f"the force at x0={','.join(map(repr, map(float, x0)))}", f0,
+                     "rescale the force or the coordinates")
+
+
+def _tolerances(rtol: Optional[Number], atol: Optional[Number], slabs: Number,
+                slab_count: int) -> Tuple[Optional[float], float]:
+    """(rtol, atol): rtol sets the tolerance (atol only beside it) and chooses the lengths
+    (slabs left at 1)."""
+    rtol_ = None if rtol is None else tolerance_value("rtol", rtol)
+    if atol is not None and rtol is None:
+        raise InputError(f"atol={atol!r} needs rtol (atol alone sets no tolerance)")
+    atol_ = 0.0 if atol is None else tolerance_value("atol", atol)
+    if rtol_ is not None and slab_count != 1:
+        raise InputError(f"slabs={slabs!r} and rtol={rtol!r} contradict each other: rtol "
+                         "chooses the slab lengths")
+    return rtol_, atol_

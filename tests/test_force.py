@@ -230,10 +230,10 @@ def test_t_eval_beyond_what_the_run_vouches_for_fails(monkeypatch):
 
 
 def test_slab_gaps_are_the_dense_estimate_at_their_points():
-    from fem_dual.config import _scene
+    from fem_dual.inputs import scene_of
     from fem_dual.integrate.dense import GAP_POINTS, hermite_estimate, slab_interpolation_gaps
 
-    scene = _scene("force", {"F": "-x - x**3, -2*y + 0.3*x*y"})
+    scene = scene_of("force", {"F": "-x - x**3, -2*y + 0.3*x*y"})
     r = run(RunConfig.create(scene, T=3, slabs=3, cells=4, degree=3, x0="1,0.5", v0="0,1"))
     rows = [np.arange(4 * k, 4 * k + 5) for k in range(3)]  # each slab's vertices, ends shared
     x, v = np.stack([r.x[i] for i in rows]), np.stack([r.v[i] for i in rows])

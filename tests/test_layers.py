@@ -13,7 +13,7 @@ LAYERS = [
     {"forms", "meshes", "expression", "reference", "output", "petsc_check", "native"},
     {"scenes"},
     {"slab"},
-    {"config"},
+    {"config", "inputs"},
     {"integrate"},
     {"analysis", "plots"},
     {"cli"},

@@ -11,7 +11,7 @@ from mpi4py import MPI
 from scipy.integrate import solve_ivp
 
 from fem_dual.cli import main
-from fem_dual.config import _scene
+from fem_dual.inputs import scene_of
 from fem_dual.analysis.floquet import SlabFlow, multiplier_distance, nontrivial
 from fem_dual.analysis.orbit import Orbits
 
@@ -21,7 +21,7 @@ CURL = {"F": "-x - 0.5*y**2, -2*y - 0.5*x**2"}  # a curl force: dFy/dx - dFx/dy 
 
 def ziegler_modes(params=None):
     """(omega, shapes) of Ziegler's column from the pencil (K, M), slowest first."""
-    scene = _scene("ziegler", params or {})
+    scene = scene_of("ziegler", params or {})
     lam, V = sla.eig(scene.stiffness_matrix(), scene.mass_matrix())
     order = np.argsort(lam.real)
     return scene, np.sqrt(lam.real[order]), V.real[:, order]
@@ -29,7 +29,7 @@ def ziegler_modes(params=None):
 
 @pytest.fixture(scope="module")
 def ziegler_orbits():
-    scene = _scene("ziegler", {})
+    scene = scene_of("ziegler", {})
     orbits = Orbits(scene, 4, 64)
     yield orbits
     orbits.close()
@@ -123,7 +123,7 @@ def test_period_and_closure_converge_at_order_2p_plus_2(degree):
     errors, closures = _period_errors(scene, x0, 1.05 * exact, degree, cells, exact)
     assert np.log2(errors[0] / errors[1]) == pytest.approx(2 * degree + 2, abs=0.5)
     assert np.log2(closures[0] / closures[1]) >= 2 * degree + 1.5
-    force = _scene("force", CURL)
+    force = scene_of("force", CURL)
     fine = Orbits(force, 6, 64)
     try:
         reference = fine.solve(force, np.array([0.3, 0.0]), np.zeros(2), 6.3).period
@@ -136,7 +136,7 @@ def test_period_and_closure_converge_at_order_2p_plus_2(degree):
 
 
 def test_a_nonlinear_orbit_closes_under_an_independent_integration():
-    force = _scene("force", CURL)
+    force = scene_of("force", CURL)
     r = _one_orbit(force, [0.3, 0.0], 6.3, cells=64)
     assert r.status == "ok" and r.newton["iterations"] <= 8
     z0 = np.concatenate([r.x[0], r.v[0]])
@@ -305,7 +305,7 @@ def test_multipliers_it_cannot_vouch_for_are_a_failure(monkeypatch):
     import fem_dual.analysis.orbit as orbit
 
     monkeypatch.setattr(orbit, "FLOW_MAX_CELLS", 8)
-    force = _scene("force", CURL)
+    force = scene_of("force", CURL)
     r = _one_orbit(force, [0.3, 0.0], 6.3, cells=8)
     assert r.status == "failed" and "multipliers are uncertain" in r.message
     assert r.estimate["multipliers"] > orbit.MULTIPLIER_TOL
@@ -316,10 +316,10 @@ def test_an_equilibrium_or_a_multiple_period_is_no_orbit():
     equilibrium (it moves by 1e-7 and does not close): failed, saying so. A guess over twice
     (three times) the period finds the orbit run twice (three times): failed, naming the
     period. (Found by a hostile test.)"""
-    shifted = _scene("force", {"F": "-(x - 1)"})
+    shifted = scene_of("force", {"F": "-(x - 1)"})
     r = _one_orbit(shifted, [1.001], 6.2832, cells=64, mode="period")
     assert r.status == "failed" and "equilibrium" in r.message
-    force = _scene("force", CURL)
+    force = scene_of("force", CURL)
     r = _one_orbit(force, [0.3, 0.0], 12.6, cells=64)
     assert r.status == "failed" and "T/2 = 6.283187" in r.message
 
@@ -342,7 +342,7 @@ def test_energy_mode_on_forces_with_a_potential():
     under DOP853; a curl force has no energy."""
     from fem_dual.analysis.orbit import Energy
 
-    duffing = _scene("force", {"F": "-x - x**3"})
+    duffing = scene_of("force", {"F": "-x - x**3"})
     has = Energy.of(duffing, np.array([0.5]))
     assert has is not None and not has.linear
     orbits = Orbits(duffing, 4, 64, has)
@@ -355,7 +355,7 @@ def test_energy_mode_on_forces_with_a_potential():
             assert ("amplitude_steps" in r.newton or "energy_stages" in r.newton) == far
     finally:
         orbits.close()
-    force = _scene("force", {"F": "-x - x**3 - x*y, -2*y - 0.5*x**2"})
+    force = scene_of("force", {"F": "-x - x**3 - x*y, -2*y - 0.5*x**2"})
     has = Energy.of(force, np.array([0.3, 0.0]))
     orbits = Orbits(force, 4, 64, has)
     try:
@@ -373,7 +373,7 @@ def test_energy_mode_on_forces_with_a_potential():
     z0 = np.array([x, y, u, w])
     end = solve_ivp(rhs, (0, r.period), z0, method="DOP853", rtol=1e-13, atol=1e-13).y[:, -1]
     assert np.abs(end - z0).max() <= 1e-10
-    assert Energy.of(_scene("force", CURL), np.array([0.3, 0.0])) is None
+    assert Energy.of(scene_of("force", CURL), np.array([0.3, 0.0])) is None
 
 
 def test_energy_mode_from_the_linear_limit_to_negative_energies():
@@ -393,7 +393,7 @@ def test_energy_mode_from_the_linear_limit_to_negative_energies():
              ({"F": "-sin(40*x)"}, [np.pi + 0.02], 1.03, 0.0076,
               lambda x, v: (1 - np.cos(40 * x[0])) / 40 + 0.5 * v @ v)]
     for params, x0, T0, E, energy in cases:
-        scene = _scene("force", params)
+        scene = scene_of("force", params)
         has = Energy.of(scene, np.array(x0))
         r = _one_orbit(scene, x0, T0, cells=32, mode="energy", energy=E, has=has)
         assert r.status == "ok", (params, r.message)
@@ -415,9 +415,9 @@ def test_no_energy_where_the_potential_cannot_be_integrated():
     12 Gauss points (its energy was 0.57 % off). (Found by a hostile test.)"""
     from fem_dual.analysis.orbit_input import Energy
 
-    singular = _scene("force", {"F": "1/x**3 - x**3"})
+    singular = scene_of("force", {"F": "1/x**3 - x**3"})
     assert Energy.of(singular, np.array([1.1])) is None
-    fast = Energy.of(_scene("force", {"F": "-sin(40*x)"}), np.array([3.16]))
+    fast = Energy.of(scene_of("force", {"F": "-sin(40*x)"}), np.array([3.16]))
     assert fast is not None and fast.points > 12
     assert abs(fast.value(np.array([3.16]), np.zeros(1)) - (1 - np.cos(40 * 3.16)) / 40) <= 1e-13
     r = _one_orbit(singular, [1.1], 2.56, cells=32)
@@ -430,19 +430,19 @@ def test_orbits_far_from_the_origin_and_many_times_around():
     check agrees (it refused the orbit: steps of 1 at |x| = 1000); a Duffing orbit of amplitude
     1e-3 around x = 1e4 is an orbit, not an equilibrium. A guess over 13 periods finds the orbit
     run 13 times: failed, naming T/13 (the check stopped at 12). (Found by a hostile test.)"""
-    pair = _scene("force", {"F": "-sin(x-1000), sin(y-1000)"})
+    pair = scene_of("force", {"F": "-sin(x-1000), sin(y-1000)"})
     r = _one_orbit(pair, [1001.0, 1000.0], 6.7, cells=64)
     assert r.status == "ok", r.message
     big = max(m[0] for m in r.multipliers)
     error = abs(big - np.exp(r.period)) / (1 + np.exp(r.period))
     assert error <= max(r.estimate["multipliers"], 1e-9) and r.check["multipliers"] <= 1e-6
-    small = _scene("force", {"F": "-(x-1e4) - 100*(x-1e4)**3, -2*y"})
+    small = scene_of("force", {"F": "-(x-1e4) - 100*(x-1e4)**3, -2*y"})
     r = _one_orbit(small, [10000.001, 0.0], 6.28, cells=64)
     assert r.status == "ok", r.message
     A = 0.5 * np.ptp(np.array(r.x)[:, 0])
     assert 0.9e-3 <= A <= 1.1e-3  # the family's member closest to the guess
     assert abs(r.period - 2 * np.pi * (1 - 3 / 8 * 100 * A ** 2)) <= 1e-7  # Lindstedt, O(A^4)
-    duffing = _scene("force", {"F": "-x - x**3, -2.3*y"})
+    duffing = scene_of("force", {"F": "-x - x**3, -2.3*y"})
     r = _one_orbit(duffing, [0.5, 0.0], 75.0293, cells=128)
     assert r.status == "failed" and "T/13" in r.message
 
@@ -451,7 +451,7 @@ def test_multipliers_beyond_double_precision_are_named():
     """Multipliers exp(+-4T) ~ 1e10 and 1e-10: the small one is known only to eps |Phi|
     ~ 1e-5; failed, saying that no resolution helps (it advised raising --cells). (Found by a
     hostile test.)"""
-    scene = _scene("force", {"F": "-x - x**3, 16*y"})
+    scene = scene_of("force", {"F": "-x - x**3, 16*y"})
     r = _one_orbit(scene, [0.5, 0.0], 6.0, cells=32)
     assert r.status == "failed" and "double precision" in r.message
     assert "raise --cells" not in r.message
@@ -476,7 +476,7 @@ def test_the_pair_at_1_is_deflated_not_split_by_the_jordan_block():
     assert np.abs(trivial - 1).max() <= 1e-8
     assert multiplier_distance(rest, 1.7 * np.exp([2j, -2j])) <= 1e-8
 
-    r = _one_orbit(_scene("force", {"F": "-x - x**3"}), [1.0], 4.77, cells=32)
+    r = _one_orbit(scene_of("force", {"F": "-x - x**3"}), [1.0], 4.77, cells=32)
     assert r.status == "ok", r.message
     for m in r.multipliers + r.check["multipliers_dop853"]:
         assert abs(complex(*m) - 1) <= 1e-8
@@ -520,7 +520,7 @@ def test_a_guess_far_from_the_orbit_restarts_on_its_newtons_image():
     whole orbit); started again on the DtP image of its last iterate it converges, and the
     polish on itself puts the period within 1e-12 of the quadrature at the orbit's energy (2e-8
     without it). (Found by a hostile test.)"""
-    scene = _scene("force", {"F": "-x - x**3"})
+    scene = scene_of("force", {"F": "-x - x**3"})
     r = _one_orbit(scene, [1.0], 5.5, cells=64)
     assert r.status == "ok", r.message
     assert r.newton.get("base_restarts", 0) >= 1 and "polish_iterations" in r.newton
@@ -562,7 +562,7 @@ def test_multipliers_have_no_difference_step_error():
     for extra, x0, T0 in [("- 10000*y**3 + 37964.085*y**5", [3.0, 0.0], 2.2),
                           ("- 1000000*y**3", [1.0, 0.0], 5.0)]:
         text = f"-x - x**3 - 2*x*y**2, -2*y - 2*x**2*y {extra}"
-        r = _one_orbit(_scene("force", {"F": text}), x0, T0)
+        r = _one_orbit(scene_of("force", {"F": text}), x0, T0)
         assert r.status == "ok", r.message
         z0 = np.concatenate([r.x[0], r.v[0]])
         exact = _variational_multipliers(F, DF, z0, r.period)
@@ -576,7 +576,7 @@ def test_period_estimate_covers_the_orbit_through_its_start():
     reported start differs from the reported one by dT/dE times that (1.6e-8 against an
     estimate of 1.3e-10 from the degree p + 1 difference alone): the estimate takes the return
     time of the check's DOP853 motion (check.period) in. (Found by a hostile test.)"""
-    r = _one_orbit(_scene("force", {"F": "-sin(x)"}), [2.5], 9.0, degree=2, cells=128)
+    r = _one_orbit(scene_of("force", {"F": "-sin(x)"}), [2.5], 9.0, degree=2, cells=128)
     assert r.status == "ok", r.message
     x0, v0 = r.x[0][0], r.v[0][0]
     E = 1 - np.cos(x0) + v0 ** 2 / 2  # the pendulum's period at energy E: 4 K(E/2)

@@ -15,9 +15,9 @@ __all__ = ["bench", "flutter", "stress"]
 
 
 def _int_list(name: str, text: str) -> List[int]:
-    from fem_dual.config import _whole_number
+    from fem_dual.inputs import whole_number
 
-    return [_whole_number(name, item) for item in text.split(",")]
+    return [whole_number(name, item) for item in text.split(",")]
 
 
 def bench(args, params, comm: MPI.Comm) -> int:

@@ -24,18 +24,18 @@ def orbit(args, params, comm) -> int:
     mode, energy = parse_mode(args.mode)
     from fem_dual.scenes.base import parse_number
 
-    from fem_dual.config import MIN_T
+    from fem_dual.inputs import MIN_T
 
     period = parse_number("period", args.period)
     if not period > 0:
         raise InputError(f"period={args.period!r} must be positive")
     if period < MIN_T:
         raise InputError(f"period={args.period!r} is too small (at least {MIN_T:g})")
-    from fem_dual.config import _whole_number
+    from fem_dual.inputs import whole_number
 
-    if _whole_number("degree", args.degree) > 8:  # (before a run's limits, which name slabs)
+    if whole_number("degree", args.degree) > 8:  # (before a run's limits, which name slabs)
         raise InputError(f"degree={args.degree} is too large for orbits (at most 8)")
-    if _whole_number("cells", args.cells) > 4096:
+    if whole_number("cells", args.cells) > 4096:
         raise InputError(f"cells={args.cells} is too large for orbits (at most 4096)")
     config = RunConfig.create(args.scene, params, T=args.period, cells=args.cells,
                               degree=args.degree, x0=args.x0, v0=args.v0, check_petsc=False)
@@ -45,10 +45,10 @@ def orbit(args, params, comm) -> int:
     continuation = (None if args.continuation is None
                     else parse_continuation(args.continuation, config.scene))
     if continuation is not None:  # every member's parameters, before any work
-        from fem_dual.config import _scene
+        from fem_dual.inputs import scene_of
 
         for value in continuation[1]:
-            member = _scene(config.scene.name, {**params, continuation[0]: value})
+            member = scene_of(config.scene.name, {**params, continuation[0]: value})
             member_has, why = Energy.find(member, config.x0) if mode == "energy" else (1, "")
             if member_has is None:
                 raise InputError(f"mode energy: {config.scene.name} at {continuation[0]}="

@@ -69,7 +69,8 @@ class SlabProblem:
         self.w = fem.Function(self.W, name="dual")
 
         # Run constants (scene parameters) and per-slab constants.
-        self.c: Dict[str, fem.Constant] = {k: constant(msh, v) for k, v in scene.constants().items()}
+        self.c: Dict[str, fem.Constant] = {k: constant(msh, v)
+                                           for k, v in scene.constants().items()}
         zero = np.zeros(n)
         self.dt = constant(msh, 1.0)
         self.t0 = constant(msh, 0.0)
@@ -78,6 +79,15 @@ class SlabProblem:
         # Constant.value setter takes 0.55 us, a view 0.08-0.24; four to eight a slab solve)
         self._slab_values = tuple(c._cpp_object.value for c in (self.dt, self.t0, self.x0,
                                                                  self.v0))
+        self._base_state(shared_predictor, cells)
+        self._dual_variables(extra)
+        self._action()
+
+    def _base_state(self, shared_predictor, cells: int) -> None:
+        """The base state (xbar, vbar) of H: constants, or functions of time one degree above
+        the duals (the predictor's), and where set_start writes it."""
+        msh, n, base, degree, scene = self.mesh.msh, self.n, self.base, self.degree, self.scene
+        zero = np.zeros(n)
         self.predictor = None
         if base in ("predictor", "rk4"):  # a function of time, one degree above the duals
             self.predictor = shared_predictor or predictor(
@@ -103,6 +113,9 @@ class SlabProblem:
                             (ufl.as_vector([self.Zbar[i] for i in range(n)]),
                              ufl.as_vector([self.Zbar[n + i] for i in range(n)])))
 
+    def _dual_variables(self, extra: int) -> None:
+        """xi, eta (and a lifted scene's multipliers) and their time derivatives in UFL."""
+        n = self.n
         # The dual fields at a point, U = w, and their derivatives in s, Us = dw/ds, are UFL
         # variables: the forms differentiate through them (ufl.derivative in w), and the
         # pointwise assembly (fem_dual.slab.local_action) differentiates the density in them.
@@ -115,10 +128,14 @@ class SlabProblem:
         self.deta = ufl.as_vector([Us[n + i] for i in range(n)]) / self.dt
         self.extra = ufl.as_vector([U[2 * n + i] for i in range(extra)]) if extra else None
 
+    def _action(self) -> None:
+        """The slab's action, its residual and Jacobian (UFL derivatives of it), and the
+        Dirichlet conditions xi(T) = eta(T) = 0."""
+        scene, msh, n, w = self.scene, self.mesh.msh, self.n, self.w
         f, c = scene.forms, self.c
         M = c["M"]
         self.time = self.t0 + self.dt * ufl.SpatialCoordinate(msh)[0]
-        qdeg = scene.quadrature_degree(degree)
+        qdeg = scene.quadrature_degree(self.degree)
         self.force = lambda x: f.force(x, c)  # noqa: E731
         self.aux = lambda dx_, dv_: f.aux_potential(dx_, dv_, c)  # noqa: E731
         self.pointwise: Optional[PointwiseDtP] = None
