@@ -1,4 +1,4 @@
-"""A follower-load column of many links at scale (issue 7): Kronecker assembly, matrix-free CG
+"""A follower-load column of many links at scale: Kronecker assembly, matrix-free CG
 with the fast-diagonalisation preconditioner, serial or under mpirun.
 
     .venv/bin/python benchmarks/column_scale.py [--links 200] [--periods 10] [--P-ratio 0.5]

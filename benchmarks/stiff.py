@@ -1,4 +1,4 @@
-"""Stiff systems beside the integrators a user would pick (issue 14): `fem-dual bench` rows for
+"""Stiff systems beside the integrators a user would pick: `fem-dual bench` rows for
 three stiff cases, on equal terms (same output times, same reference, compilation excluded).
 
     .venv/bin/python benchmarks/stiff.py [--case NAME]... [--repeats 3] [--out DIR]

@@ -115,12 +115,13 @@ def _run(sub) -> None:
                    '"-k*x*y**2, -k*x**3" (x, y, z or x1..xn; + - * / **; sin cos tan exp log '
                    "sqrt sinh cosh tanh atan abs; pi; parameters by --param)")
     r.add_argument("--scene-file", help="a Python file declaring your own scene (a ForceScene "
-                   "subclass with forms, see README 'Your own force'); SCENE names it")
+                   "subclass with forms, see docs/scenes.md); SCENE names it")
     r.add_argument("--reference", default="auto", help="auto (default): compare with the "
                    "scene's reference (matrix exponential or DOP853 at 1e-13); none: skip it "
                    "(the error estimate remains)")
     r.add_argument("--t-eval", help="also the state at these times: t1,t2,... or "
-                   "START:STOP:COUNT (JSON t_eval; quintic Hermite between the vertices)")
+                   "START:STOP:COUNT (JSON t_eval; Hermite interpolation between the vertices, "
+                   "with the equation of motion)")
     r.add_argument("--csv", help="write t, x1..xn, v1..vn at the output times to this file")
     r.add_argument("--plot", help="write PNG pictures of the motion, phase portrait, error and "
                    "H_d into this directory")

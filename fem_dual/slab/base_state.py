@@ -1,7 +1,7 @@
 """Base states of H on a slab (the (xbar, vbar) of forms.predual), beyond the constant ones.
 
 Only the residual of the base state, L zbar = zbar' - f(zbar) with f(z) = (v, M^-1 F(x)), enters
-a slab's dual action (issue 14): the constant start state leaves f(z0), an O(omega) forcing that
+a slab's dual action: the constant start state leaves f(z0), an O(omega) forcing that
 modes the cells do not resolve turn into growth; zero leaves -f(0), nothing for a linear system
 or a force with F(0) = 0, but the dual fields must then carry the whole state through a
 nonlinear DtP map. The predictor below is close to the motion and nearly residual-free in every
