@@ -302,13 +302,13 @@ def test_orbit_under_mpi_equals_serial(tmp_path_factory, capsys):
 def test_multipliers_it_cannot_vouch_for_are_a_failure(monkeypatch):
     """With the flow held at the orbit's 8 cells (p = 4), the curl force's multipliers differ
     by 1.4e-6 between degrees p and p + 1: status failed, not ok."""
-    import fem_dual.analysis.orbit as orbit
+    from fem_dual.analysis.orbit import multipliers
 
-    monkeypatch.setattr(orbit, "FLOW_MAX_CELLS", 8)
+    monkeypatch.setattr(multipliers, "FLOW_MAX_CELLS", 8)
     force = scene_of("force", CURL)
     r = _one_orbit(force, [0.3, 0.0], 6.3, cells=8)
     assert r.status == "failed" and "multipliers are uncertain" in r.message
-    assert r.estimate["multipliers"] > orbit.MULTIPLIER_TOL
+    assert r.estimate["multipliers"] > multipliers.MULTIPLIER_TOL
 
 
 def test_an_equilibrium_or_a_multiple_period_is_no_orbit():
