@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from fem_dual import RunConfig, native, run
+from fem_dual.native import build
 from fem_dual.slab.base_state import FlowPredictor
 from fem_dual.scenes import get_scene
 from fem_dual.scenes.curl import Curl3D
@@ -99,15 +100,16 @@ def test_compiled_band_is_the_numpy_band(scene, degree, cells):
 
 @pytest.mark.parametrize("damage", ["empty", "truncated", "another library"])
 def test_a_damaged_library_in_the_cache_is_built_again(tmp_path, monkeypatch, damage):
-    """A library file that is not the one compiled (found by the hostile test: a truncated one
-    that dlopen accepted killed the run with SIGBUS; one without the functions, a traceback)."""
+    """A library file that is not the one compiled (a truncated one that dlopen accepts kills
+    the run with SIGBUS at a call; one without the functions, a traceback)."""
+    monkeypatch.setattr(build, "PACKAGED", tmp_path / "none.so")  # (not built: the cache's)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "first"))
     monkeypatch.setattr(native, "_loaded", {})
     assert native.library() is not None
     (built,) = (tmp_path / "first" / "fem-dual").glob("native-*.so")
     cache = tmp_path / "second" / "fem-dual"  # (not the file this process has mapped)
     cache.mkdir(parents=True)
-    for name in (built.name, built.with_suffix(".sha256").name):  # as a whole cache first
+    for name in (built.name, built.name + ".json"):  # as a whole cache first
         (cache / name).write_bytes((built.parent / name).read_bytes())
     damaged = cache / built.name
     import ctypes.util
@@ -123,6 +125,7 @@ def test_a_damaged_library_in_the_cache_is_built_again(tmp_path, monkeypatch, da
 
 
 def test_no_compiler_means_the_numpy_loops(tmp_path, monkeypatch):
+    monkeypatch.setattr(build, "PACKAGED", tmp_path / "none.so")
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     monkeypatch.setenv("PATH", str(tmp_path))  # no cc, no gcc
     monkeypatch.setattr(native, "_loaded", {})

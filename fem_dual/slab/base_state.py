@@ -104,7 +104,8 @@ class FlowPredictor:
     Args:
         scene: the nonlinear scene.
         steps: RK4 steps per slab.
-        force: a compiled force of the same scene to share (fem_dual.native.CompiledForce);
+        force: a compiled force of the same scene to share
+            (fem_dual.native.force.CompiledForce);
             None: compile one (if the compiled loops are available).
         compiled: False: step in numpy whatever is available.
     """
@@ -117,7 +118,9 @@ class FlowPredictor:
         self._native = native.library() if compiled else None
         self.force = None
         if self._native is not None:
-            self.force = force or native.CompiledForce.of(scene)
+            from fem_dual.native.force import CompiledForce
+
+            self.force = force or CompiledForce.of(scene)
         self.use_scene(scene)
 
     @property

@@ -719,11 +719,12 @@ class NativeNewton:
 
     def __init__(self, local: LocalAction):
         from fem_dual import native
+        from fem_dual.native.force import PackedExpression
 
         self.local = local
         self.ffi, self.lib = native.library()
         p = local.problem
-        self.expr = native.PackedExpression(local._both.compiled, local.cells)
+        self.expr = PackedExpression(local._both.compiled, local.cells)
         index = self.expr.index(p.w)  # (cells, nd bs): the dual state's values in each row
         free = np.full(p.w.x.array.size, -1, dtype=np.int64)
         free[local.free_global] = np.arange(local.size)
@@ -835,13 +836,14 @@ class _ImplicitMap:
 
     def __init__(self, newton: "NativeNewton", free: np.ndarray):
         from fem_dual import native
+        from fem_dual.native.force import PackedExpression
         from fem_dual.slab.pointwise_dtp import BRANCH_TOL, LAST_STEP, MAX_IT
 
         local, ffi = newton.local, newton.ffi
         p = local.problem
         self.map = dtp = p.pointwise
         self.local = local
-        self.expr = expr = native.PackedExpression(dtp._eval.compiled, dtp.cells)
+        self.expr = expr = PackedExpression(dtp._eval.compiled, dtp.cells)
         n, points, cells = dtp.n, len(dtp.points), len(dtp.cells)
         index = expr.index(p.w)
         both = newton.expr

@@ -124,7 +124,9 @@ class PointwiseDtP:
             if built is None:
                 self._packed = False
             else:
-                packed = native.PackedExpression(self._eval.compiled, self.cells)
+                from fem_dual.native.force import PackedExpression
+
+                packed = PackedExpression(self._eval.compiled, self.cells)
                 self._packed = (built, packed,  # X's columns in a cell's row, X's blocks
                                 np.ascontiguousarray(packed.slot(self.X), dtype=np.int64),
                                 np.ascontiguousarray(self.dofs, dtype=np.int64))
