@@ -324,7 +324,7 @@ def test_the_compiled_newton_factors_the_jacobian_at_its_solution():
     for the last step's factors), and the tangents equal those of a fresh factorisation; the
     error companion, which takes no tangents, does without."""
     from fem_dual.integrate.simulation import Simulation
-    from fem_dual.slab.local_action import FACTORS_KEPT_STEP
+    from fem_dual.slab.native_newton import FACTORS_KEPT_STEP
 
     config = RunConfig.create("curl3d", T=8, cells=8, degree=8, base="rk4", staging="off",
                               reference="none")
@@ -400,7 +400,7 @@ def test_compiled_band_cholesky_is_lapacks(N, kd):
     definite falls back to LU with pivoting."""
     from scipy.linalg import lapack
 
-    from fem_dual.slab.local_action import BandedLU
+    from fem_dual.slab.banded import BandedLU
 
     rng = np.random.default_rng(N)
     A = np.zeros((N, N))

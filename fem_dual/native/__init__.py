@@ -1,39 +1,40 @@
 """Compiled loops around FFCx kernels: the inner loops that Python would run step by step.
 
 UFL stays the single source: FFCx compiles the scene's force as a `fem.Expression` (its C
-kernel is `tabulate_tensor_float64`), and a small C library (the sources in `src/`, built by
-fem_dual.native.build) calls that kernel inside its loops. `library()` loads it; where it
-cannot be built or loaded, it returns None and the callers keep their numpy loops, the compiled
-loops' twins (`reason()` says why). `force` holds the compiled force and expressions whose
-kernels the loops call.
+kernel is `tabulate_tensor_float64`), and a small C library (the sources in `src/`, built at
+install time by fem_dual.native.build) calls that kernel inside its loops. `library()` loads
+it; where it cannot be built or loaded, it returns None and the callers keep their numpy loops,
+the compiled loops' twins (`reason()` says why). The numerical modules call the loops through
+typed bindings, one module per C source:
 
-What the sources hold:
-- `rk4.c`: classical Runge-Kutta in Nystrom form, the loop of
+- `rk4` (rk4.c): classical Runge-Kutta in Nystrom form, the loop of
   fem_dual.slab.base_state.FlowPredictor (the same stages and sums), with the force from its
   kernel, and its cubic Hermite read at the slab's nodes.
-- `band.c`: the Jacobian's band of fem_dual.slab.local_action.LocalAction from the Hessian of
-  the density at the quadrature points (numpy: a gather, a matrix product per group, a gather
-  and a bincount).
-- `dtp.c`: the Newton iteration of fem_dual.slab.pointwise_dtp.PointwiseDtP (an implicit DtP
-  map solved at every point), the same steps and stopping rule, with G and G_x from the kernel
-  of its expression (`force.PackedExpression` packs that kernel's coefficients as DOLFINx
-  does).
-- `newton.c`: a slab's Newton of fem_dual.slab.pointwise_newton (the residual and band of
-  fem_dual.slab.local_action from the kernel of the density's gradient and Hessian, the
+- `band` (band.c): the Jacobian's band of fem_dual.slab.local_action.LocalAction from the
+  Hessian of the density at the quadrature points (numpy: a gather, a matrix product per
+  group, a gather and a bincount).
+- `dtp` (dtp.c): the Newton iteration of fem_dual.slab.pointwise_dtp.PointwiseDtP (an implicit
+  DtP map solved at every point), the same steps and stopping rule, with G and G_x from the
+  kernel of its expression (`force.PackedExpression` packs that kernel's coefficients as
+  DOLFINx does).
+- `newton` (newton.c): a slab's Newton of fem_dual.slab.pointwise_newton (the residual and band
+  of fem_dual.slab.local_action from the kernel of the density's gradient and Hessian, the
   implicit DtP map solved inside each evaluation, the step by the banded Cholesky below), while
   every full step is taken; the numpy iteration decides the rest (line search, failures), so
-  those rules live in one place.
-- `cholesky.c`: the banded Cholesky factorisation in LAPACK's storage (dpbtrf's with uplo =
-  'U') and its solves, for every banded Jacobian (fem_dual.slab.local_action.BandedLU): twice
+  those rules live in one place (fem_dual.slab.native_newton drives it).
+- `cholesky` (cholesky.c): the banded Cholesky factorisation in LAPACK's storage (dpbtrf's with
+  uplo = 'U') and its solves, for every banded Jacobian (fem_dual.slab.banded.BandedLU): twice
   the reference LAPACK's speed on these bands.
-- `tangents.c`: the exact tangents of a solved slab after their banded solve
+- `tangents` (tangents.c): the exact tangents of a solved slab after their banded solve
   (LocalAction._tangent_matrix): the solved unknowns through the density's Hessian to the
   momenta at the cell ends (numpy: a dozen batched products).
-- `estimate.c`: a slab's error estimate from the answer's and the companion's vertex values
-  (fem_dual.integrate.simulation._estimates), and what the run's accumulator keeps of accepted
-  slabs (fem_dual.integrate.sinks.Accumulator; numpy: some twenty array operations each).
-- `pack.c`: the gather of a compiled expression's coefficients into its kernel's rows
-  (`force.PackedExpression.pack`; numpy: a gather and a copy per coefficient).
+- `estimate` (estimate.c): a slab's error estimate from the answer's and the companion's
+  vertex values (fem_dual.integrate.simulation._estimates), and what the run's accumulator
+  keeps of accepted slabs (fem_dual.integrate.sinks.Accumulator; numpy: some twenty array
+  operations each).
+- `force` (pack.c): the compiled force of a scene and the gather of a compiled expression's
+  coefficients into its kernel's rows (`PackedExpression.pack`; numpy: a gather and a copy per
+  coefficient).
 """
 from __future__ import annotations
 

@@ -16,7 +16,8 @@ from typing import List, Mapping, Optional
 import numpy as np
 
 from fem_dual.errors import SolveError
-from fem_dual.slab.local_action import BandedLU, LocalAction, _quiet
+from fem_dual.slab.banded import BandedLU
+from fem_dual.slab.local_action import LocalAction, _quiet
 from fem_dual.slab.snes import (NEWTON_DEFAULTS, NO_PROGRESS_RATIO, RESIDUAL_ROUNDOFF,
                              backward_floor, difference_step, residual_size,
                              round_off_floor)
