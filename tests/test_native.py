@@ -372,7 +372,7 @@ def _summary(slabs, vertices, n, first):
 
 
 _FORCE = {"F": "-sin(x) - a*x**3", "a": "0.5"}
-_CURL3D = ([0.3, 0.2, 0.1, 0.1, -0.2, 0.05])
+_CURL3D = [0.3, 0.2, 0.1, 0.1, -0.2, 0.05]
 # (the C functions a row checks, its check, the check's arguments)
 TWINS = [
     (("rk4", "hermite"), _rk4, (get_scene("curl3d")(m=2.0), _CURL3D)),

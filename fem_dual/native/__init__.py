@@ -46,6 +46,7 @@ import numpy as np
 __all__ = ["library", "require", "reason", "path", "pointer"]
 
 _loaded: Dict[str, object] = {}
+_C_ARRAYS = {np.dtype(np.float64): "double[]", np.dtype(np.int64): "int64_t[]"}
 
 
 def _locate() -> Path:
@@ -109,10 +110,18 @@ def path() -> Optional[Path]:
     return _loaded.get("path")  # type: ignore[return-value]
 
 
-def pointer(ffi, array: Optional[np.ndarray], kind: str = "double *"):
-    """A C pointer to a C-contiguous array of the C type `kind` points to (NULL for None); the
-    pointer keeps the array alive while it lives (a temporary array passed to a call stays
-    valid through the call)."""
+def pointer(ffi, array: Optional[np.ndarray], kind: Optional[str] = None):
+    """A C pointer to a C-contiguous array (NULL for None): `double *` for float64 values,
+    `int64_t *` for int64 ones, else `kind`. The pointer keeps the array alive while it lives
+    (a temporary array passed to a call stays valid through the call).
+
+    Raises:
+        TypeError: an array of another type, without `kind`.
+    """
     if array is None:
         return ffi.NULL
-    return ffi.from_buffer(kind.replace("*", "[]"), array)
+    if kind is not None:
+        return ffi.from_buffer(kind.replace("*", "[]"), array)
+    if array.dtype not in _C_ARRAYS:
+        raise TypeError(f"no C array type for {array.dtype} values")
+    return ffi.from_buffer(_C_ARRAYS[array.dtype], array)

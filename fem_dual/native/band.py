@@ -43,7 +43,7 @@ class Band:
         self.B = np.empty(total)  # the products, one buffer for every call
         # C pointers of what every call reads (each keeps its array alive); the compiled
         # Newton (fem_dual.native.newton) reads them too
-        self._pointers = {name: pointer(ffi, a, "int64_t *") for name, a in (
+        self._pointers = {name: pointer(ffi, a) for name, a in (
             ("cols", cols), ("lo", lo), ("hi", hi), ("start", start), ("flat", flat),
             ("source", source))}
         self._pointers.update(scale=pointer(ffi, np.ascontiguousarray(scale, dtype=float)),

@@ -37,10 +37,10 @@ def dtp_newton(kernel: int, packed: np.ndarray, xslot: np.ndarray, constants: np
     it = ffi.new("int *")
     status = lib.fem_dual_dtp_newton(
         kernel, cells, points, n, packed.shape[1], pointer(ffi, packed),
-        pointer(ffi, np.ascontiguousarray(xslot, dtype=np.int64), "int64_t *"),
+        pointer(ffi, np.ascontiguousarray(xslot, dtype=np.int64)),
         pointer(ffi, constants), pointer(ffi, coords), max_it, last_step, pointer(ffi, out),
         pointer(ffi, step), pointer(ffi, X),
-        pointer(ffi, np.ascontiguousarray(xdofs, dtype=np.int64), "int64_t *"),
+        pointer(ffi, np.ascontiguousarray(xdofs, dtype=np.int64)),
         pointer(ffi, np.empty(n * n)), it)
     return status, it[0]
 
@@ -80,8 +80,7 @@ class DtpMap:
         self._pointers = {}  # (each keeps its array alive while the struct points to it)
         for name, array in list(kept.items()) + [("packed", packed), ("coords", coords),
                                                  ("X", X), ("Ginv", Ginv)]:
-            kind = "int64_t *" if array.dtype == np.int64 else "double *"
-            self._pointers[name] = p = pointer(ffi, array, kind)
+            self._pointers[name] = p = pointer(ffi, array)
             setattr(D, name, p)
         self._constants = None
 

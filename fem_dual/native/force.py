@@ -115,8 +115,8 @@ class PackedExpression:
         offset = np.concatenate([[0], np.cumsum(width)[:-1]]).astype(np.int64)
         values = ffi.new("uintptr_t[]", [address(v) for v in views[:count]])
         index = ffi.new("uintptr_t[]", [address(v) for v in views[count:]])
-        args = (len(self.cells), count, self.packed.shape[1], pointer(ffi, width, "int64_t *"),
-                pointer(ffi, offset, "int64_t *"), values, index, pointer(ffi, self.packed))
+        args = (len(self.cells), count, self.packed.shape[1], pointer(ffi, width),
+                pointer(ffi, offset), values, index, pointer(ffi, self.packed))
         self._keep_alive = (kept, views, width, offset)
         return lib.fem_dual_pack, args
 

@@ -78,21 +78,18 @@ class SlabNewton:
         self.doubles = ffi.new("double[2]")  # the backward floor, the last step
         b = band._pointers
 
-        def d(a, kind="double *"):
-            return pointer(ffi, a, kind)
-
-        def i(name):
-            return d(ints[name], "int64_t *")
+        def d(a):
+            return pointer(ffi, a)
         # the call's arguments in order (the pointers keep their arrays alive); each run sets
         # those given as a name here
         args = [
             kernel, cells, nq, ncols, packed.shape[1], d(packed), "constants", d(coords),
-            ints["wfree"].shape[1], i("wslot"), i("wfree"), nd, bs,
-            d(np.ascontiguousarray(Tg)), len(ints["r_keep"]), i("r_keep"), i("r_rows"),
-            len(ints["start_rows"]), i("start_rows"), "initial", band.pairs, b["cols"],
-            b["scale"], band.groups, b["lo"], b["hi"], b["start"], b["PT"], band.nd2,
-            len(ints["u_flat"]), i("u_flat"), i("u_source"), b["B"], N, kd, "chol",
-            d(np.empty(kd + 1)), "x", *(d(a) for a in work),
+            ints["wfree"].shape[1], d(ints["wslot"]), d(ints["wfree"]), nd, bs,
+            d(np.ascontiguousarray(Tg)), len(ints["r_keep"]), d(ints["r_keep"]),
+            d(ints["r_rows"]), len(ints["start_rows"]), d(ints["start_rows"]), "initial",
+            band.pairs, b["cols"], b["scale"], band.groups, b["lo"], b["hi"], b["start"],
+            b["PT"], band.nd2, len(ints["u_flat"]), d(ints["u_flat"]), d(ints["u_source"]),
+            b["B"], N, kd, "chol", d(np.empty(kd + 1)), "x", *(d(a) for a in work),
             d(np.empty(cells * nd * bs)), d(out), "atol", "check_start", "rtol", "stol",
             "max_it", "patience", "no_progress", "decrease", d(self.history), self.ints,
             self.doubles, self.doubles + 1, self.ints + 1,

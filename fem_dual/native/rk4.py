@@ -23,7 +23,7 @@ class HermiteTable:
         ffi, _ = require()
         self.rows = np.ascontiguousarray(rows, dtype=np.int64)
         self.weights = np.ascontiguousarray(weights, dtype=float)
-        self._pointers = (pointer(ffi, self.rows, "int64_t *"), pointer(ffi, self.weights))
+        self._pointers = (pointer(ffi, self.rows), pointer(ffi, self.weights))
 
 
 class Rk4:

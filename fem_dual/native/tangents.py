@@ -37,8 +37,7 @@ class Tangents:
             (T, float), (Tg, float), (cols, np.int64), (pk, np.int64), (pl, np.int64),
             (rows, np.int64), (sign, float))]
         self.pairs = len(arrays[2])
-        self._fixed = [pointer(ffi, a, "int64_t *" if a.dtype == np.int64 else "double *")
-                       for a in arrays]  # (each keeps its array alive)
+        self._fixed = [pointer(ffi, a) for a in arrays]  # (each keeps its array alive)
         # its right-hand sides (solved in place), its output and work, reused by every call
         K1 = 2 * n + 1
         self.dw = np.empty((N + 1, K1))
