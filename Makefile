@@ -7,7 +7,7 @@ VPY := $(VENV)/bin/python
 NP ?= 2
 APT_PACKAGES := python3-dolfinx-real python3-ufl python3-petsc4py python3-mpi4py python3-numpy \
 	python3-meshio python3-h5py python3-scipy python3-matplotlib python3-pytest python3-venv \
-	python3-setuptools python3-tqdm python3-hypothesis openmpi-bin
+	python3-setuptools python3-tqdm python3-hypothesis python3-cffi openmpi-bin
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
 # OpenMPI refuses to run as root without these; CI runs as root.
@@ -33,7 +33,13 @@ $(VENV)/.installed: pyproject.toml | system-packages
 	$(VPY) -m pip install --quiet --no-build-isolation --no-index -e .
 	touch $@
 
-install: system-packages $(VENV)/.installed
+# The compiled loops, built into the package with the compiler the FFCx JIT uses (without one,
+# the numpy loops run; a library older than its sources is compiled again at run time).
+NATIVE_LIB := fem_dual/native/_lib/libfem_dual_native.so
+$(NATIVE_LIB): $(VENV)/.installed $(wildcard fem_dual/native/src/*.c fem_dual/native/src/*.h)
+	$(VPY) -m fem_dual.native.build
+
+install: system-packages $(VENV)/.installed $(NATIVE_LIB)
 
 demo: install
 	$(VPY) demos/demo_ziegler.py
@@ -47,4 +53,4 @@ test-mpi: install
 test: test-serial test-mpi
 
 clean:
-	rm -rf $(VENV) out_* build *.egg-info
+	rm -rf $(VENV) out_* build *.egg-info fem_dual/native/_lib

@@ -222,35 +222,18 @@ def _compiled_estimates(vals: VertexValues, companion: VertexValues,
     """(local, glob, scales, floor, err_local, err_global) of `estimate_slabs` from fem_dual.native's
     `estimate`; None where it is not compiled, or a value is not finite or a weight is not
     positive (the numpy code judges those)."""
-    built = native.library()
-    if built is None:
+    from fem_dual.native.estimate import estimates
+
+    if native.library() is None:
         return None
-    ffi, lib = built
     z = vals.state()
     if companion.state().shape != z.shape:
         return None
-    S, V, m = z.shape
-    size = S * V * m
-    states = np.empty((2,) + z.shape)  # (one buffer, one pointer: the call's own arrays)
-    states[0], states[1] = z, companion.state()
-    out = np.empty(2 * size + 6 * S)  # local, glob, scales, floors, local and global errors
-    at, to = ffi.from_buffer("double[]", states), ffi.from_buffer("double[]", out)
-    d = (lambda a: ffi.NULL if a is None else
-         ffi.from_buffer("double[]", np.ascontiguousarray(a, dtype=float)))
     per_slab = None if np.ndim(dt) == 0 else np.asarray(dt, dtype=float) / T
     tol = weights.tol
-    failed = lib.fem_dual_estimate(
-        S, V, m // 2, at, at + size, d(algebraic), d(psi), d(lost), ESTIMATE_SAFETY,
-        ROUNDOFF_REL, tol.atol, tol.rtol, weights.scale_x, weights.scale_v,
-        float(dt) / T if per_slab is None else 0.0, d(per_slab), to, to + size,
-        to + 2 * size, to + 2 * size + 2 * S, to + 2 * size + 4 * S, to + 2 * size + 5 * S)
-    if failed:
-        return None
-    local = out[:size].reshape(S, V, m)
-    glob = local if psi is None else out[size:2 * size].reshape(S, V, m)
-    rest = out[2 * size:]
-    return (local, glob, rest[:2 * S].reshape(S, 2), rest[2 * S:4 * S].reshape(S, 2),
-            rest[4 * S:5 * S], rest[5 * S:])
+    return estimates(z, companion.state(), algebraic, psi, lost, ESTIMATE_SAFETY, ROUNDOFF_REL,
+                     tol.atol, tol.rtol, weights.scale_x, weights.scale_v,
+                     float(dt) / T if per_slab is None else None, per_slab)
 
 
 def batched(values: VertexValues) -> VertexValues:

@@ -117,25 +117,12 @@ def _compiled_summaries(batch: SlabBatch) -> Optional[tuple]:
     """`_summaries` in compiled code (fem_dual.native's `summary`); None where it is not
     compiled or a value is not finite."""
     from fem_dual import native
+    from fem_dual.native.estimate import summaries
 
-    built = native.library()
-    if built is None:
+    if native.library() is None:
         return None
-    ffi, lib = built
-    S, V, m = batch.glob.shape
-    first = batch.first == 0
-    rows = S * (V - 1) + first
-    out = np.empty(rows + 6 + 5 * S)  # rows, peaks, final, per slab: glob, local, H's three
-    to = ffi.from_buffer("double[]", out)
-    d = (lambda a: ffi.from_buffer("double[]", np.ascontiguousarray(a, dtype=float)))
-    at = rows + 6
-    if lib.fem_dual_summary(S, V, m // 2, int(first), d(batch.glob), d(batch.local),
-                            d(batch.floor), d(batch.values.hamiltonian), _TINY, to, to + rows,
-                            to + rows + 2, to + at, to + at + S, to + at + 2 * S,
-                            to + at + 3 * S, to + at + 4 * S):
-        return None
-    per_slab = out[at:].reshape(5, S)
-    return (out[:rows], out[rows:rows + 2], out[rows + 2:rows + 4], *per_slab)
+    return summaries(batch.glob, batch.local, batch.floor, batch.values.hamiltonian,
+                     batch.first == 0, _TINY)
 
 
 class Accumulator:

@@ -193,7 +193,7 @@ class PointwiseNewton(_NewtonParts):
         loops = self._rk4_loops() + (["band"] if local.compiled_band else [])
         loops += ["newton"] if newton else []
         loops += self._dtp_loops(newton)
-        if local._native_tangents is not None and self.problem.base != "start":
+        if local.compiled_tangents and self.problem.base != "start":
             loops.append("tangents")
         return loops
 

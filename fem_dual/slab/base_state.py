@@ -23,7 +23,7 @@ the correction's discretisation error is small with it.
 from __future__ import annotations
 
 import math
-from typing import Dict, Tuple
+from typing import Dict
 
 import numpy as np
 
@@ -110,7 +110,8 @@ class FlowPredictor:
     Args:
         scene: the nonlinear scene.
         steps: RK4 steps per slab.
-        force: a compiled force of the same scene to share (fem_dual.native.CompiledForce);
+        force: a compiled force of the same scene to share
+            (fem_dual.native.force.CompiledForce);
             None: compile one (if the compiled loops are available).
         compiled: False: step in numpy whatever is available.
     """
@@ -120,10 +121,11 @@ class FlowPredictor:
 
         self.steps = steps
         self._weights: Dict[bytes, tuple] = {}  # Hermite weights of given fractions
-        self._native = native.library() if compiled else None
         self.force = None
-        if self._native is not None:
-            self.force = force or native.CompiledForce.of(scene)
+        if compiled and native.library() is not None:
+            from fem_dual.native.force import CompiledForce
+
+            self.force = force or CompiledForce.of(scene)
         self.use_scene(scene)
 
     @property
@@ -145,17 +147,14 @@ class FlowPredictor:
         self._scale = scale
         self._minv = None if np.array_equal(self.Minv, scale * np.eye(self.n)) else \
             np.ascontiguousarray(self.Minv)
+        self._loop = None
         if self.force is not None:
-            from fem_dual.native import pointer
+            from fem_dual.native.rk4 import Rk4
 
-            ffi = self._native[0]
-            self._constants = self.force.pack(scene)
-            # what every run reads, as C pointers (each keeps its array alive)
-            self._fixed = (pointer(ffi, self._constants), pointer(ffi, self._minv),
-                           pointer(ffi, np.empty(7 * self.n)))
-            # the run's step ends, reused by every run (the kept run is dropped before the next)
-            ends = np.zeros((2, self.steps + 1, 2 * self.n))
-            self._ends = (ends[0], ends[1], pointer(ffi, ends[0]), pointer(ffi, ends[1]))
+            # the run's step ends are the loop's, reused by every run (the kept run is dropped
+            # before the next)
+            self._loop = Rk4(self.force.kernel, self.force.pack(scene), self.n, self.steps,
+                             scale, self._minv)
         self.forget()
 
     def forget(self) -> None:
@@ -170,8 +169,9 @@ class FlowPredictor:
         the velocity stages folded into the positions: a dozen array operations a step
         fewer; a 20-step slab of curl3d in 0.3 ms, 1 ms as four stages of z)."""
         h = end / self.steps
-        if self.force is not None:  # (the C loop checks every value after the start's)
-            states, rates, failed = self._compiled_run(np.asarray(z0, dtype=float), h)
+        if self._loop is not None:  # (the C loop checks every value after the start's)
+            failed = self._loop.run(z0, h)
+            states, rates = self._loop.states, self._loop.rates
             failed = failed or not np.isfinite(rates[0]).all()
         else:
             states, rates = self._numpy_run(z0, h)
@@ -183,20 +183,6 @@ class FlowPredictor:
                              "or it is stiff, where explicit Runge-Kutta is unstable (use "
                              "--base predictor)")
         return states, rates
-
-    def _compiled_run(self, z0: np.ndarray, h: float):
-        """_run's steps in compiled code (fem_dual.native): the same stages and sums."""
-        from fem_dual.native import pointer
-
-        ffi, lib = self._native
-        constants, minv, work = self._fixed
-        states, rates, to_states, to_rates = self._ends
-        z0 = np.ascontiguousarray(z0)
-        failed = lib.fem_dual_rk4(self.force.kernel, constants, self.n, self.steps, h,
-                                  self._scale, minv, pointer(ffi, z0), to_states, to_rates, work)
-        if failed:  # (the loop stopped at the first value that is not finite)
-            states[-1, 0] = np.nan
-        return states, rates, bool(failed)
 
     def _numpy_run(self, z0: np.ndarray, h: float):
         """_run's steps in numpy, on the scene's force_numpy."""
@@ -259,24 +245,19 @@ class FlowPredictor:
             return np.repeat(states[:1], len(fractions), axis=0)
         if key not in self._weights:
             self._weights[key] = self._hermite(np.asarray(fractions, dtype=float))
-        rows, weights, to_rows, to_weights = self._weights[key]
+        rows, weights, table = self._weights[key]
         h = end / self.steps
-        if self.force is not None:  # (the same sums in compiled code, of the run's step ends)
-            from fem_dual.native import pointer
-
-            ffi, lib = self._native
-            out = np.empty((len(rows), states.shape[1]))
-            lib.fem_dual_hermite(len(rows), states.shape[1], self.steps, h, to_rows, to_weights,
-                                 self._ends[2], self._ends[3], pointer(ffi, out))
+        if self._loop is not None:  # (the same sums in compiled code, of the run's step ends)
+            out = self._loop.read(table, h)
         else:
             out = np.einsum("mj,mjc->mc", weights, np.concatenate([states, h * rates])[rows])
         self._reads[key] = out
         return out
 
     def _hermite(self, fractions: np.ndarray) -> tuple:
-        """(rows, weights, their C pointers or None), rows and weights (len(fractions), 4): the
-        cubic Hermite of the step ends at the fractions of the slab, as weights of rows of
-        [states; h rates]."""
+        """(rows, weights, their table for the compiled read or None), rows and weights
+        (len(fractions), 4): the cubic Hermite of the step ends at the fractions of the slab, as
+        weights of rows of [states; h rates]."""
         steps = self.steps
         u = np.clip(fractions * steps, 0.0, steps)
         k = np.minimum(u.astype(int), steps - 1)  # the step of each time
@@ -286,11 +267,10 @@ class FlowPredictor:
         rows = np.stack([k, steps + 1 + k, k + 1, steps + 2 + k], axis=1).astype(np.int64)
         weights = np.ascontiguousarray(weights)
         if self.force is None:
-            return rows, weights, None, None
-        from fem_dual.native import pointer
+            return rows, weights, None
+        from fem_dual.native.rk4 import HermiteTable
 
-        ffi = self._native[0]  # (C pointers for the compiled read, each keeps its array alive)
-        return rows, weights, pointer(ffi, rows, "int64_t *"), pointer(ffi, weights)
+        return rows, weights, HermiteTable(rows, weights)
 
 
 def predictor(scene, base: str, steps: int):

@@ -120,12 +120,13 @@ class PointwiseDtP:
         if self._packed is None:
             from fem_dual import native
 
-            built = native.library()
-            if built is None:
+            if native.library() is None:
                 self._packed = False
             else:
-                packed = native.PackedExpression(self._eval.compiled, self.cells)
-                self._packed = (built, packed,  # X's columns in a cell's row, X's blocks
+                from fem_dual.native.force import PackedExpression
+
+                packed = PackedExpression(self._eval.compiled, self.cells)
+                self._packed = (packed,  # X's columns in a cell's row, X's blocks
                                 np.ascontiguousarray(packed.slot(self.X), dtype=np.int64),
                                 np.ascontiguousarray(self.dofs, dtype=np.int64))
         if self._packed:
@@ -146,20 +147,14 @@ class PointwiseDtP:
 
     def _compiled_iterate(self, max_it: int):
         """_iterate's loop in compiled code: the same steps, stopping rule and results."""
-        from fem_dual.native import pointer
+        from fem_dual.native.dtp import dtp_newton
 
-        (ffi, lib), packed, xslot, xdofs = self._packed
-        n, cells, points = self.n, len(self.cells), len(self.points)
-        rows = packed.pack()
-        step = np.empty((cells, points, n))
-        it = ffi.new("int *")
-        status = lib.fem_dual_dtp_newton(
-            packed.kernel, cells, points, n, rows.shape[1], pointer(ffi, rows),
-            pointer(ffi, xslot, "int64_t *"), pointer(ffi, packed.constants()),
-            pointer(ffi, packed.coords), max_it, LAST_STEP, pointer(ffi, self._out),
-            pointer(ffi, step), pointer(ffi, self.X.x.array), pointer(ffi, xdofs, "int64_t *"),
-            pointer(ffi, np.empty(n * n)), it)
-        return status, self._out.reshape(self._shape), step, it[0]
+        packed, xslot, xdofs = self._packed
+        step = np.empty((len(self.cells), len(self.points), self.n))
+        status, it = dtp_newton(packed.kernel, packed.pack(), xslot, packed.constants(),
+                                packed.coords, max_it, LAST_STEP, self._out, step,
+                                self.X.x.array, xdofs)
+        return status, self._out.reshape(self._shape), step, it
 
     @staticmethod
     def _branch(Gx: np.ndarray, t: np.ndarray) -> Optional[str]:

@@ -16,7 +16,8 @@ from typing import List, Mapping, Optional
 import numpy as np
 
 from fem_dual.errors import SolveError
-from fem_dual.slab.local_action import BandedLU, LocalAction, _quiet
+from fem_dual.slab.banded import BandedLU
+from fem_dual.slab.local_action import LocalAction, _quiet
 from fem_dual.slab.snes import (NEWTON_DEFAULTS, NO_PROGRESS_RATIO, RESIDUAL_ROUNDOFF,
                              backward_floor, difference_step, residual_size,
                              round_off_floor, stalled)
@@ -138,29 +139,9 @@ class PointwiseNewtonSolver(_PointwiseSolver):
             if not np.isfinite(step).all():
                 reason = "DIVERGED_LINEAR_SOLVE"
                 break
-            lam, trial = 1.0, None
             floor = round_off_floor(history, size, backward, warm)
-            while lam >= MIN_LAMBDA:
-                trial = x - lam * step
-                local.set_state(trial)
-                F_new, band_new = local.residual_and_jacobian()
-                failure = local.error
-                gnorm = _norm(F_new)
-                if math.isfinite(gnorm) and gnorm <= (1.0 - DECREASE * lam) * fnorm:
-                    break
-                if fnorm <= floor:  # at round-off already: shorter steps are noise too (a
-                    lam, failure = 0.0, None  # companion cut 40 to 1e-12, then was accepted)
-                    break
-                if self.patience is not None and (it == 0 or lam < GUESSED_MIN_LAMBDA):
-                    lam = -1.0  # a guessed length whose Newton is damped hard: see below
-                    break
-                # PETSc's bt: halve past NaN, else the minimum of the quadratic model of
-                # |F|^2 / 2 along the step, kept within [0.1, 0.5] of the step
-                if math.isfinite(gnorm):
-                    model = lam ** 2 * fnorm ** 2 / (gnorm ** 2 + (2 * lam - 1) * fnorm ** 2)
-                    lam = min(max(model, 0.1 * lam), 0.5 * lam)
-                else:
-                    lam *= 0.5
+            lam, trial, F_new, band_new, gnorm, failure = self._line_search(x, step, fnorm,
+                                                                            floor, it)
             if lam == -1.0:
                 # a guessed length (--rtol) whose first full step did not lower the residual:
                 # every such Newton failed on curl3d T = 8 (the damped steps then gain a tenth
@@ -190,6 +171,37 @@ class PointwiseNewtonSolver(_PointwiseSolver):
             elif self._give_up(it, fnorm, first) or it >= MAX_IT:
                 reason = "DIVERGED_MAX_IT"
         self._finish(x, reason, history, it, size, backward, warm, failure)
+
+    def _line_search(self, x: np.ndarray, step: np.ndarray, fnorm: float, floor: float,
+                     it: int) -> tuple:
+        """PETSc's bt line search along -step from x, whose residual norm is fnorm: (lam, the
+        last trial state, its residual, band and residual norm, why the implicit DtP map
+        failed there). lam is the accepted fraction of the step; 0 where x is at the round-off
+        floor already, -1 for a guessed slab length whose Newton is damped hard (`solve` says
+        why), below MIN_LAMBDA where the search failed."""
+        local, lam = self.local, 1.0
+        while lam >= MIN_LAMBDA:
+            trial = x - lam * step
+            local.set_state(trial)
+            F_new, band_new = local.residual_and_jacobian()
+            failure = local.error
+            gnorm = _norm(F_new)
+            if math.isfinite(gnorm) and gnorm <= (1.0 - DECREASE * lam) * fnorm:
+                break
+            if fnorm <= floor:  # at round-off already: shorter steps are noise too (a
+                lam, failure = 0.0, None  # companion cut 40 to 1e-12, then was accepted)
+                break
+            if self.patience is not None and (it == 0 or lam < GUESSED_MIN_LAMBDA):
+                lam = -1.0  # a guessed length whose Newton is damped hard: see solve
+                break
+            # PETSc's bt: halve past NaN, else the minimum of the quadratic model of
+            # |F|^2 / 2 along the step, kept within [0.1, 0.5] of the step
+            if math.isfinite(gnorm):
+                model = lam ** 2 * fnorm ** 2 / (gnorm ** 2 + (2 * lam - 1) * fnorm ** 2)
+                lam = min(max(model, 0.1 * lam), 0.5 * lam)
+            else:
+                lam *= 0.5
+        return lam, trial, F_new, band_new, gnorm, failure
 
     def _finish(self, x: np.ndarray, reason: str, history: List[float], it: int, size: float,
                 backward: float, warm: Optional[float], failure: Optional[str],
