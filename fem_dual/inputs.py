@@ -15,7 +15,7 @@ import numpy as np
 
 from fem_dual.errors import InputError
 from fem_dual.scenes import Scene, get_scene
-from fem_dual.scenes.base import STATE_MAX, parse_number, show
+from fem_dual.scenes.base import DECIMAL, STATE_MAX, parse_number, show
 
 __all__ = ["quoted", "whole_number", "choice", "within_state_max", "scene_of", "described",
            "output_path", "petsc_options", "tolerance_value", "parse_times", "Number", "MIN_T",
@@ -35,9 +35,13 @@ def quoted(value) -> str:
 
 
 def whole_number(name: str, value: Number, minimum: int = 1) -> int:
+    """A whole number of at least `minimum` (text: a plain decimal, "1e3" too), or InputError
+    naming `name`."""
     if not isinstance(value, (str, numbers.Real)) or isinstance(value, (bool, np.bool_)):
         raise InputError(f"{name}={quoted(value)} is not a whole number")
     text = str(value).strip()
+    if isinstance(value, str) and not DECIMAL.fullmatch(text):
+        raise InputError(f"{name}={quoted(text)} is not a whole number")
     try:
         as_float = float(text)
     except ValueError:

@@ -44,15 +44,23 @@ XML_ROW_BYTES = 400  # XML per field and slab (measured: about 330)
 _TAIL = "</Grid>\n</Domain>\n</Xdmf>\n"
 
 
-def check_output_dir(path: "str | os.PathLike", option: str = "--out") -> Path:
-    """The output directory, created if missing; InputError (naming `option`) if it cannot
-    hold our files."""
+def check_output_dir(path: "str | os.PathLike", option: str = "--out",
+                     create: bool = True) -> Path:
+    """The output directory, created if missing (`create`; else only checked, leaving nothing
+    behind: its nearest existing folder must take a new directory); InputError (naming
+    `option`) if it cannot hold our files."""
     if not isinstance(path, (str, os.PathLike)) or not str(path).strip():
         raise InputError(f"{option} {path!r} is not a directory name")
     out = Path(path)
     try:
-        out.mkdir(parents=True, exist_ok=True)
-        probe = tempfile.mkdtemp(prefix=".fem-dual-probe-", dir=out)
+        if create:
+            out.mkdir(parents=True, exist_ok=True)
+        probe_in = out
+        while not create and not probe_in.exists() and probe_in.parent != probe_in:
+            probe_in = probe_in.parent  # the nearest part of it that exists
+        if not probe_in.is_dir():
+            raise NotADirectoryError(20, "Not a directory")
+        probe = tempfile.mkdtemp(prefix=".fem-dual-probe-", dir=probe_in)
         os.rmdir(probe)
     except OSError as exc:
         raise InputError(f"{option} {str(path)!r} is not a writable directory "
@@ -60,13 +68,13 @@ def check_output_dir(path: "str | os.PathLike", option: str = "--out") -> Path:
     return out
 
 
-def check_output_dir_on_root(comm, path: "str | os.PathLike",
-                             option: str = "--out") -> Optional[Path]:
+def check_output_dir_on_root(comm, path: "str | os.PathLike", option: str = "--out",
+                             create: bool = True) -> Optional[Path]:
     """check_output_dir on rank 0 (which writes), its InputError raised on every rank, so no rank
     goes on into collective work alone. The directory on rank 0, None elsewhere."""
     from fem_dual.mpi import input_on_root
 
-    return input_on_root(comm, lambda: check_output_dir(path, option))
+    return input_on_root(comm, lambda: check_output_dir(path, option, create))
 
 
 def free_bytes(directory: Path) -> int:

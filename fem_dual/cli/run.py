@@ -34,7 +34,7 @@ def _check_files(comm: MPI.Comm, args) -> dict:
             raise InputError(f"--csv and --plot name the same path {args.csv!r}")
         files["csv"] = csv
     if args.plot is not None:
-        files["plot"] = check_output_dir_on_root(comm, args.plot, "--plot")
+        files["plot"] = check_output_dir_on_root(comm, args.plot, "--plot", create=False)
     return files
 
 
@@ -50,6 +50,7 @@ def _write_files(comm: MPI.Comm, result: RunResult, files: dict) -> Optional[str
             if "plot" in files:
                 from fem_dual.plots import write_plots
 
+                files["plot"].mkdir(parents=True, exist_ok=True)
                 result.output_files += [str(p) for p in write_plots(result, files["plot"])]
         except OSError as exc:
             problem = f"could not write {exc.filename or 'the output'}: {exc.strerror or exc}"
@@ -159,11 +160,12 @@ def run(args, params: Dict[str, Any], comm: "Optional[MPI.Comm]") -> int:
     comm = world(comm)  # after the values are checked: bad input answers before MPI loads
     from fem_dual.integrate.api import run as run_config
 
-    files = _check_files(comm, args)  # after validation: bad input writes nothing
+    files: Dict[str, Any] = {}
     try:
-        with stdout_to_stderr(args.json):
+        with stdout_to_stderr(args.json):  # (--csv, --plot checked after every other input)
             result = run_config(config, comm, progress=not args.json and sys.stderr.isatty(),
-                                resume=args.resume)
+                                resume=args.resume,
+                                before=lambda: files.update(_check_files(comm, args)))
     except SolveError as exc:
         print0(comm, failure_line(exc), file=sys.stderr)
         if exc.partial is not None:

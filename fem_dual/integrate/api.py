@@ -1,6 +1,8 @@
 """`run`: a configuration in, a RunResult out (the library's entry point)."""
 from __future__ import annotations
 
+from typing import Callable, Optional
+
 from mpi4py import MPI
 
 from fem_dual.config import RunConfig
@@ -13,7 +15,7 @@ __all__ = ["run", "RunResult", "Simulation"]
 
 
 def run(config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD, progress: bool = False,
-        resume: bool = False) -> RunResult:
+        resume: bool = False, before: Optional[Callable[[], None]] = None) -> RunResult:
     """Solve the dual problem slab by slab, recover the primal motion, compare with the reference.
 
     With `resume`, go on from the last slab an earlier run of the same options wrote into
@@ -21,6 +23,10 @@ def run(config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD, progress: bool = Fal
 
     Nonlinear scenes retry a slab whose Newton (or DtP map) fails with half its length, up to
     `config.max_halvings` times; `progress` shows a bar over the slabs on stderr (rank 0).
+
+    Nothing is written before every input is checked: the PETSc options are checked as the
+    solver is set up, `config.out` is checked, `before()` (the caller's own checks, e.g. the
+    command line's --csv and --plot) runs, and only then is `config.out` made.
 
     Raises:
         SolveError: a slab failed, or writing the output did; `partial` holds the result of the
@@ -34,10 +40,14 @@ def run(config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD, progress: bool = Fal
     config.scene.checked()  # a RunConfig built without create() is validated all the same
     if resume and config.out is None:
         raise InputError("resume needs the output directory of the run to go on with (--out)")
-    if config.out is not None:  # before any work: a bad --out is bad input, on every rank
-        check_output_dir_on_root(comm, config.out)
-    sim = Simulation.for_config(config, comm)
+    sim = Simulation.for_config(config, comm)  # (bad or unused PETSc options raise InputError)
     try:
+        if config.out is not None:  # a bad --out is bad input, on every rank
+            check_output_dir_on_root(comm, config.out, create=False)
+        if before is not None:
+            before()
+        if config.out is not None:
+            check_output_dir_on_root(comm, config.out)
         result = sim.run(config, progress, resume)
     except (SolveError, InputError):  # raised on every rank alike: close collectively
         sim.close()

@@ -18,6 +18,7 @@ import dataclasses
 import importlib
 import math
 import numbers
+import re
 from types import ModuleType
 from typing import Callable, ClassVar, Dict, Mapping, Optional, Tuple
 
@@ -86,9 +87,19 @@ def matrix_field(doc: str):
     return dataclasses.field(default=None, metadata={"kind": "matrix", "doc": doc})
 
 
+# A number as text: a plain decimal, optionally with an exponent ("1", "-0.5", "2.", ".5",
+# "1e-8", "1E+3"); not Python's wider float() syntax ("1_0", "0x10", "infinity").
+DECIMAL = re.compile(r"\s*[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?\s*")
+
+
 def parse_number(name: str, text: "str | float") -> float:
-    """A finite float, or InputError naming `name` and the bad text."""
+    """A finite float, or InputError naming `name` and the bad text. Text must be a plain
+    decimal number (digits, one point, an exponent)."""
     if isinstance(text, (bool, np.bool_, complex, np.complexfloating)):
+        raise InputError(f"{name}={_quoted(text)} is not a number")
+    if isinstance(text, str) and not DECIMAL.fullmatch(text):
+        if text.strip().lower().lstrip("+-") in ("inf", "infinity", "nan"):
+            raise InputError(f"{name}={_quoted(text)} is not finite")
         raise InputError(f"{name}={_quoted(text)} is not a number")
     try:
         value = float(text)
