@@ -94,8 +94,8 @@ def attempt(config: RunConfig, comm: MPI.Comm, condition: bool = True) -> Attemp
         failure, result = str(exc), exc.partial
     run_s = time.perf_counter() - tic
     cond = None
-    if condition and hasattr(sim.solver, "condition_estimate") and failure is None:
-        cond = sim.solver.condition_estimate()
+    if condition and failure is None and sim.scene.linear:
+        cond = sim.backend.condition_estimate()
     sim.close()
     return Attempt(config, result, failure, run_s, cond)
 

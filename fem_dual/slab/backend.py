@@ -115,6 +115,11 @@ class LinearSlabBackend(SlabBackend):
         """Slab solves a superposition basis of one slab length costs."""
         return 2 * self.scene.n
 
+    def condition_estimate(self) -> Optional[float]:
+        """lambda_max / lambda_min of the last slab length's matrix (SPD), by power iteration;
+        None where the backend holds no matrix (matrix-free)."""
+        return None
+
 
 class NonlinearSlabBackend(SlabBackend):
     """A backend of a nonlinear scene: Newton on the slab's action, and the linearisation of a

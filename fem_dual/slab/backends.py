@@ -79,6 +79,9 @@ class _LinearParts(_ProblemParts, LinearSlabBackend):
 
         return Superposition(self.problem, self.solver, self.sampler, T, hamiltonian)
 
+    def condition_estimate(self) -> Optional[float]:
+        return self.solver.condition_estimate()
+
 
 class _NewtonParts(_ProblemParts, NonlinearSlabBackend):
     """A nonlinear scene's slab on a SlabProblem: Newton, and the linearisation of its
