@@ -1,16 +1,20 @@
 """Everything that depends on DOLFINx 0.5.2 specifics lives here, and nowhere else."""
 from __future__ import annotations
 
+import dataclasses
 import logging
+import os
 from contextlib import contextmanager
-from typing import Iterator
+from typing import Any, Dict, Iterator, List, Optional
 
 import numpy as np
 import ufl
+from dolfinx import cpp as _cpp
 from dolfinx import fem
 
-__all__ = ["quiet_jit_logging", "CellPointEvaluator", "vector_space", "vector_space_dg1",
-           "constant", "destroy_petsc", "release_function_vector"]
+__all__ = ["quiet_jit_logging", "CellPointEvaluator", "CompiledExpression", "compile_expression",
+           "vector_space", "vector_space_dg1", "constant", "destroy_petsc",
+           "release_function_vector"]
 
 
 def _drop_info(record: logging.LogRecord) -> bool:
@@ -87,22 +91,13 @@ class CellPointEvaluator:
     kernel reads those left after it expands the derivatives: a constant that a derivative
     removes (the parameter of a force F = a in dG/dx) shifted every later constant into the
     wrong slot (`force --F a --param a=-2` read H's weight from a, and the DtP map was refused
-    as singular). The derivatives are expanded here first, so both see the same constants, and
-    a kernel that reads another number of constants stops at set-up.
+    as singular). The derivatives are expanded first (`compile_expression`), so both see the
+    same constants, and a kernel that reads another number of constants stops at set-up.
     """
 
     def __init__(self, expr: ufl.core.expr.Expr, ref_points: np.ndarray):
-        from ufl.algorithms import expand_derivatives
-        from ufl.algorithms.analysis import extract_constants
-
         self._points = np.asarray(ref_points, dtype=np.float64).reshape(-1, 1)
-        expanded = expand_derivatives(expr)
-        self._expr = fem.Expression(expanded, self._points)
-        packed = len(extract_constants(expanded))
-        if packed != self._expr.ufcx_expression.num_constants:
-            raise RuntimeError(f"the compiled expression reads "
-                               f"{self._expr.ufcx_expression.num_constants} constants where "
-                               f"{packed} are packed")
+        self._expr = compile_expression(expr, self._points)
         self.value_size = self._expr.value_size
         self.expression = expr
         space = self._expr.argument_function_space
@@ -118,7 +113,7 @@ class CellPointEvaluator:
         return values.reshape(len(cells), points, self._width)
 
     @property
-    def compiled(self) -> fem.Expression:
+    def compiled(self) -> "CompiledExpression":
         """The compiled expression (its kernel and coefficients: fem_dual.native)."""
         return self._expr
 
@@ -129,3 +124,131 @@ class CellPointEvaluator:
         expression; the C++ object does neither."""
         self._expr._cpp_object.eval(cells, out)
         return out
+
+
+@dataclasses.dataclass
+class CompiledExpression:
+    """What a compiled UFL expression is to fem-dual: DOLFINx's C++ expression (`_cpp_object`,
+    its `eval`), FFCx's `ufcx_expression` (the kernel), and the coefficients the kernel reads,
+    in its order (the compiled loops of fem_dual.native pack them themselves)."""
+
+    ufcx_expression: Any
+    _cpp_object: Any
+    coefficients: List[fem.Function]
+    mesh: Any
+    argument_function_space: Optional[fem.FunctionSpace]
+    module: Any  # the FFCx module the kernel lives in (kept alive with it)
+
+    @property
+    def value_size(self) -> int:
+        return self._cpp_object.value_size
+
+
+# Compiled expressions by the signature of the expression as written (before its derivatives
+# are expanded): FFCx keys its cache on the expanded expression, whose expansion and signature
+# cost most of a slab problem's set-up (0.3-0.8 s of a pointwise curl3d simulation; the
+# expression as written is a small DAG). An entry names the FFCx module and kernel and where
+# the kernel's coefficients and constants sit among the written expression's; it is kept in
+# memory and, beside FFCx's cache, on disk, so a new process finds it too.
+_COMPILED: Dict[str, tuple] = {}
+_MEMO_FORMAT = 1
+
+
+def compile_expression(expr: ufl.core.expr.Expr, points: np.ndarray) -> CompiledExpression:
+    """`expr` at the reference `points`, compiled by FFCx with its derivatives expanded
+    (see CellPointEvaluator), or taken from a compilation of an expression with the same
+    signature (the same UFL up to the numbering of its coefficients, constants and labels)."""
+    from dolfinx import jit
+    from ffcx.naming import compute_signature
+
+    params = jit.get_parameters()
+    key = compute_signature([(expr, points)], f"fem-dual-{_MEMO_FORMAT};{ufl.__version__};"
+                            f"{sorted((k, str(v)) for k, v in params.items())}")
+    coefficients = ufl.algorithms.extract_coefficients(expr)
+    constants = ufl.algorithms.analysis.extract_constants(expr)
+    arguments = ufl.algorithms.extract_arguments(expr)
+    found = _COMPILED.get(key) or _memo_load(key, params["cache_dir"])
+    if found is None:
+        found = _compile(expr, points, coefficients, constants, params["cache_dir"], key)
+    ufcx, module, coefficient_index, constant_index = found
+    _COMPILED[key] = found
+    mesh = expr.ufl_domain().ufl_cargo()
+    space = arguments[0].ufl_function_space() if arguments else None
+    used = [coefficients[i] for i in coefficient_index]
+    if len(constant_index) != ufcx.num_constants:
+        raise RuntimeError(f"the compiled expression reads {ufcx.num_constants} constants where "
+                           f"{len(constant_index)} are packed")
+    address = module.ffi.cast("uintptr_t", module.ffi.addressof(ufcx))
+    cpp = _cpp.fem.create_expression_float64(
+        address, [f._cpp_object for f in used], [constants[i]._cpp_object for i in constant_index],
+        mesh, None if space is None else space._cpp_object)
+    return CompiledExpression(ufcx, cpp, used, mesh, space, module)
+
+
+def _compile(expr, points, coefficients, constants, cache_dir, key) -> tuple:
+    """Compile `expr` with its derivatives expanded (FFCx's JIT and cache), and note its entry."""
+    from dolfinx import jit
+    from ufl.algorithms import expand_derivatives
+
+    expanded = expand_derivatives(expr)
+    mesh = expr.ufl_domain().ufl_cargo()
+    ufcx, module, _ = jit.ffcx_jit(mesh.comm, (expanded, points),
+                                   form_compiler_params={"scalar_type": "double"})
+    kernel = ufcx.original_coefficient_positions
+    expanded_coefficients = ufl.algorithms.extract_coefficients(expanded)
+    coefficient_index = [coefficients.index(expanded_coefficients[kernel[i]])
+                         for i in range(ufcx.num_coefficients)]
+    constant_index = [constants.index(c)
+                      for c in ufl.algorithms.analysis.extract_constants(expanded)]
+    # the kernel's name in its module: FFCx names expressions "expression_<signature>", and a
+    # module of one expression has one
+    names = [name for name in dir(module.lib) if name.startswith("expression_")]
+    if len(names) == 1 and getattr(module.lib, names[0]) is not None:
+        _memo_save(key, cache_dir, {"format": _MEMO_FORMAT, "module": module.__name__,
+                                    "kernel": names[0], "coefficients": coefficient_index,
+                                    "constants": constant_index})
+    return ufcx, module, coefficient_index, constant_index
+
+
+def _memo_path(key: str, cache_dir) -> "os.PathLike":
+    from pathlib import Path
+
+    return Path(cache_dir) / "fem-dual-expressions" / f"{key}.json"
+
+
+def _memo_load(key: str, cache_dir) -> Optional[tuple]:
+    """The entry of `key` from disk with its module loaded; None where there is none, or its
+    module is not (or no longer) a finished compilation in FFCx's cache."""
+    import json
+    from pathlib import Path
+
+    from ffcx.codegeneration.jit import _load_objects
+
+    try:
+        entry = json.loads(_memo_path(key, cache_dir).read_text())
+        if entry.get("format") != _MEMO_FORMAT:
+            return None
+        ready = Path(cache_dir) / f"{entry['module']}.c.cached"
+        if not ready.exists():
+            return None
+        (ufcx,), module = _load_objects(cache_dir, entry["module"], [entry["kernel"]])
+        return ufcx, module, list(entry["coefficients"]), list(entry["constants"])
+    except (OSError, ValueError, KeyError, TypeError, AttributeError, ImportError):
+        return None
+
+
+def _memo_save(key: str, cache_dir, entry: dict) -> None:
+    """Write the entry under another name, then rename it: concurrent writers each leave a
+    whole file. A cache that cannot be written costs the next process a lookup, nothing else."""
+    import json
+    import tempfile
+
+    path = _memo_path(key, cache_dir)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile("w", dir=path.parent, delete=False,
+                                         suffix=".tmp") as tmp:
+            tmp.write(json.dumps(entry))
+        os.replace(tmp.name, path)
+    except OSError:
+        pass

@@ -65,19 +65,16 @@ class PackedExpression:
     Elements on an interval need no dof transformation (Lagrange, DG, Quadrature).
 
     Args:
-        expr: the expression (0.5.2's fem.Expression).
+        expr: the compiled expression (fem_dual.compat.CompiledExpression).
         cells: the cells (int32) whose rows are packed.
     """
 
     def __init__(self, expr, cells: np.ndarray):
         import cffi
-        import ufl
         from dolfinx import cpp
 
         ufcx = expr.ufcx_expression
-        original = ufl.algorithms.extract_coefficients(expr.ufl_expression)
-        self.coefficients = [original[ufcx.original_coefficient_positions[i]]
-                             for i in range(ufcx.num_coefficients)]
+        self.coefficients = list(expr.coefficients)  # (in the kernel's order)
         self.cells = np.asarray(cells, dtype=np.int32)
         columns, self._slots = [], {}
         offset = 0
@@ -92,7 +89,7 @@ class PackedExpression:
         self._columns = columns
         self.packed = np.zeros((len(self.cells), max(offset, 1)))
         self._compiled = self._compiled_pack()
-        msh = expr.ufl_expression.ufl_domain().ufl_cargo()
+        msh = expr.mesh
         geometry = msh.geometry.dofmap.array.reshape(-1, 2)[self.cells]
         self.coords = np.ascontiguousarray(msh.geometry.x[geometry].reshape(len(self.cells), 6))
         self._constants = lambda: cpp.fem.pack_constants(expr._cpp_object)

@@ -1,0 +1,110 @@
+"""Compiled expressions are found again by the signature of the expression as written
+(fem_dual.compat.compile_expression): the same UFL on new objects reuses one compilation, in
+this process and in a new one, binds the new objects' coefficients and constants, and anything
+that is not the same expression compiles anew."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import ufl
+from dolfinx import fem, jit, mesh
+from mpi4py import MPI
+
+from fem_dual import compat
+
+POINTS = np.array([[0.2], [0.7]])
+
+
+def _expression(a: float, b: float, power: int = 3):
+    """d/du of a * u^power + b * u (a variable derivative, as the slab's density), on a new
+    mesh, function and constants: (the derivative, u, the constants)."""
+    msh = mesh.create_unit_interval(MPI.COMM_SELF, 2)
+    u = fem.Function(fem.FunctionSpace(msh, ("Lagrange", 1)))
+    u.interpolate(lambda x: 1.0 + x[0])
+    ca, cb = fem.Constant(msh, a), fem.Constant(msh, b)
+    var = ufl.variable(u)
+    return ufl.diff(ca * var ** power + cb * var, var), u, (ca, cb)
+
+
+def _values(expr) -> np.ndarray:
+    compiled = compat.compile_expression(expr, POINTS)
+    out = np.zeros((2, len(POINTS)))
+    compiled._cpp_object.eval(np.arange(2, dtype=np.int32), out)
+    return out
+
+
+def _exact(a, b, power=3):
+    s = np.array([0.2, 0.7])
+    u = 1.0 + np.concatenate([0.5 * s, 0.5 + 0.5 * s])  # the two cells of [0, 1]
+    return (power * a * u ** (power - 1) + b).reshape(2, 2)
+
+
+def test_the_same_expression_on_new_objects_compiles_once_and_binds_its_own_values(monkeypatch):
+    first, _, _ = _expression(2.0, 1.0)
+    assert np.allclose(_values(first), _exact(2.0, 1.0), rtol=1e-14)
+    calls = []
+    monkeypatch.setattr(compat, "_compile", lambda *a: calls.append(a) or 1 / 0)
+    again, _, _ = _expression(-3.0, 0.5)  # other constants, another mesh: the same UFL
+    assert np.allclose(_values(again), _exact(-3.0, 0.5), rtol=1e-14)
+    assert not calls
+
+
+def test_another_expression_compiles_anew(monkeypatch):
+    _values(_expression(1.0, 1.0, power=3)[0])
+    compiled = []
+    original = compat._compile
+    monkeypatch.setattr(compat, "_compile", lambda *a: compiled.append(1) or original(*a))
+    assert np.allclose(_values(_expression(1.5, 0.5, power=4)[0]), _exact(1.5, 0.5, 4),
+                       rtol=1e-14)
+    assert compiled
+
+
+def test_a_constant_the_derivative_removes_keeps_the_others_in_their_slots():
+    """c0 u + d/du (c1 u + c2 u): the expanded expression keeps c0, c1, c2; a kernel bound to
+    the wrong slots would not give c0 u + c1 + c2."""
+    msh = mesh.create_unit_interval(MPI.COMM_SELF, 2)
+    u = fem.Function(fem.FunctionSpace(msh, ("Lagrange", 1)))
+    c0, c1, c2 = (fem.Constant(msh, v) for v in (5.0, 2.0, 3.0))
+    var = ufl.variable(u)
+    expr = c0 * u + ufl.diff(c1 * var + c2 * var, var)  # c0 u + (c1 + c2)
+    u.x.array[:] = 0.0
+    assert np.allclose(_values(expr), 5.0)
+    u.x.array[:] = 1.0
+    assert np.allclose(_values(expr), 10.0)
+
+
+@pytest.mark.serial
+def test_a_new_process_finds_the_compilation_and_a_damaged_entry_compiles_again(tmp_path):
+    script = f"""
+import sys
+sys.path.insert(0, {str(Path(__file__).parent)!r})
+import numpy as np
+from test_compiled_expressions import _expression, _values, _exact
+from fem_dual import compat
+calls = []
+original = compat._compile
+compat._compile = lambda *a: calls.append(1) or original(*a)
+assert np.allclose(_values(_expression(0.7, -1.0)[0]), _exact(0.7, -1.0), rtol=1e-14)
+print(len(calls))
+"""
+    env = {"XDG_CACHE_HOME": str(tmp_path), "PATH": "/usr/bin:/bin", "HOME": str(tmp_path)}
+
+    def fresh() -> int:
+        done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                              env=env, timeout=300)
+        assert done.returncode == 0, done.stderr[-2000:]
+        return int(done.stdout.split()[-1])
+    assert fresh() == 1  # an empty cache: compiled
+    assert fresh() == 0  # found by the new process
+    entries = list((tmp_path / "fenics" / "fem-dual-expressions").glob("*.json"))
+    assert len(entries) == 1
+    entry = json.loads(entries[0].read_text())
+    entries[0].write_text(json.dumps({**entry, "kernel": "expression_missing"}))
+    assert fresh() == 1  # an entry that names no kernel: compiled again, the answer right
+    assert fresh() == 0
+    entries[0].write_text("{not json")
+    assert fresh() == 1
+    assert jit.get_parameters()["cache_dir"] != tmp_path  # (this process's cache untouched)
