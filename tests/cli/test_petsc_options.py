@@ -18,7 +18,7 @@ from fem_dual.errors import InputError
 from fem_dual.petsc_check import (SNES_TYPES, available_types, check_options, options_used,
                                   solver_packages)
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 _SCRIPT = ROOT / ".venv" / "bin" / "fem-dual"
 FEM_DUAL = [str(_SCRIPT)] if _SCRIPT.exists() else [sys.executable, "-m", "fem_dual.cli"]
 
