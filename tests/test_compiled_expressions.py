@@ -53,13 +53,19 @@ def test_the_same_expression_on_new_objects_compiles_once_and_binds_its_own_valu
 
 
 def test_another_expression_compiles_anew(monkeypatch):
-    _values(_expression(1.0, 1.0, power=3)[0])
+    """Without the entries on disk (this process's own only): the same expression compiles
+    once, another (u^4 instead of u^3) again."""
+    monkeypatch.setattr(compat, "_COMPILED", {})
+    monkeypatch.setattr(compat, "_memo_load", lambda key, cache_dir: None)
     compiled = []
     original = compat._compile
     monkeypatch.setattr(compat, "_compile", lambda *a: compiled.append(1) or original(*a))
+    _values(_expression(1.0, 1.0, power=3)[0])
+    _values(_expression(2.0, -1.0, power=3)[0])
+    assert len(compiled) == 1
     assert np.allclose(_values(_expression(1.5, 0.5, power=4)[0]), _exact(1.5, 0.5, 4),
                        rtol=1e-14)
-    assert compiled
+    assert len(compiled) == 2
 
 
 def test_a_constant_the_derivative_removes_keeps_the_others_in_their_slots():
