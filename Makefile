@@ -7,7 +7,8 @@ VPY := $(VENV)/bin/python
 NP ?= 2
 APT_PACKAGES := python3-dolfinx-real python3-ufl python3-petsc4py python3-mpi4py python3-numpy \
 	python3-meshio python3-h5py python3-scipy python3-matplotlib python3-pytest python3-venv \
-	python3-setuptools python3-tqdm python3-hypothesis python3-cffi openmpi-bin
+	python3-setuptools python3-tqdm python3-hypothesis python3-cffi python3-pytest-xdist \
+	openmpi-bin
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
 # OpenMPI refuses to run as root without these; CI runs as root.
@@ -16,7 +17,7 @@ export OMPI_ALLOW_RUN_AS_ROOT_CONFIRM := 1
 export OMPI_MCA_rmaps_base_oversubscribe := 1
 export DEBIAN_FRONTEND := noninteractive
 
-.PHONY: install system-packages demo test test-serial test-mpi clean
+.PHONY: install system-packages demo test test-serial test-mpi test-all clean
 
 system-packages:
 	@missing=""; for p in $(APT_PACKAGES); do \
@@ -44,13 +45,19 @@ install: system-packages $(VENV)/.installed $(NATIVE_LIB)
 demo: install
 	$(VPY) demos/demo_ziegler.py
 
+# The serial tests on two workers (pytest-xdist; one per core), then the MPI tests under mpirun.
+# `make test-all` adds the long cases (marked slow): run it before every release.
+SLOW ?=
 test-serial: install
-	$(VPY) -m pytest -q --color=no tests
+	$(VPY) -m pytest -q --color=no -n $(NP) $(SLOW) tests
 
 test-mpi: install
-	mpirun -n $(NP) $(VPY) -m pytest -q --color=no -m mpi tests
+	mpirun -n $(NP) $(VPY) -m pytest -q --color=no -m mpi $(SLOW) tests
 
 test: test-serial test-mpi
+
+test-all:
+	$(MAKE) test SLOW=--slow
 
 clean:
 	rm -rf $(VENV) out_* build *.egg-info fem_dual/native/_lib

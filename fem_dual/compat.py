@@ -13,6 +13,7 @@ from dolfinx import cpp as _cpp
 from dolfinx import fem
 
 __all__ = ["quiet_jit_logging", "CellPointEvaluator", "CompiledExpression", "compile_expression",
+           "compile_form",
            "vector_space", "vector_space_dg1", "constant", "destroy_petsc",
            "release_function_vector"]
 
@@ -144,6 +145,17 @@ class CompiledExpression:
         return self._cpp_object.value_size
 
 
+# How long a process waits for another that compiles the same form or expression (FFCx's JIT
+# lets one compile and the others wait, 10 s by default, then fail): the heaviest expressions
+# take longer than that when two processes compile at once
+JIT_TIMEOUT = 600
+
+
+def compile_form(form: ufl.Form) -> fem.FormMetaClass:
+    """`fem.form(form)`, waiting for a concurrent compilation of the same form (JIT_TIMEOUT)."""
+    return fem.form(form, jit_params={"timeout": JIT_TIMEOUT})
+
+
 # Compiled expressions by the signature of the expression as written (before its derivatives
 # are expanded): FFCx keys its cache on the expanded expression, whose expansion and signature
 # cost most of a slab problem's set-up (0.3-0.8 s of a pointwise curl3d simulation; the
@@ -193,7 +205,8 @@ def _compile(expr, points, coefficients, constants, cache_dir, key) -> tuple:
     expanded = expand_derivatives(expr)
     mesh = expr.ufl_domain().ufl_cargo()
     ufcx, module, _ = jit.ffcx_jit(mesh.comm, (expanded, points),
-                                   form_compiler_params={"scalar_type": "double"})
+                                   form_compiler_params={"scalar_type": "double"},
+                                   jit_params={"timeout": JIT_TIMEOUT})
     kernel = ufcx.original_coefficient_positions
     expanded_coefficients = ufl.algorithms.extract_coefficients(expanded)
     coefficient_index = [coefficients.index(expanded_coefficients[kernel[i]])

@@ -2,10 +2,18 @@ import gc
 import os
 
 import pytest
-from mpi4py import MPI
 
 os.environ.setdefault("OMPI_ALLOW_RUN_AS_ROOT", "1")
 os.environ.setdefault("OMPI_ALLOW_RUN_AS_ROOT_CONFIRM", "1")
+if os.environ.get("OMPI_MCA_ess") == "singleton":
+    # a pytest-xdist worker, started by a controller that had MPI initialised on its own: the
+    # singleton's variables would make every mpirun the tests start fail without a word (and
+    # this process's own MPI join the controller's); each process starts MPI afresh
+    for _name in [k for k in os.environ if k.startswith(("PMIX_", "OMPI_MCA_", "OMPI_APP_"))
+                  and k != "OMPI_MCA_rmaps_base_oversubscribe"]:
+        del os.environ[_name]
+
+from mpi4py import MPI  # noqa: E402 -- after the environment is clean
 
 
 @pytest.fixture(autouse=True)

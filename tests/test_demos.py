@@ -27,8 +27,13 @@ def test_demo_runs(demo, tmp_path):
     _check(proc, tmp_path, demo)
 
 
+# the flutter demo's two searches per damping take 20 s under mpirun: with --slow
+UNDER_MPIRUN = [pytest.param(d, marks=pytest.mark.slow) if d.stem == "demo_flutter" else d
+                for d in DEMOS]
+
+
 @pytest.mark.serial
-@pytest.mark.parametrize("demo", DEMOS, ids=[d.stem for d in DEMOS])
+@pytest.mark.parametrize("demo", UNDER_MPIRUN, ids=[d.stem for d in DEMOS])
 def test_demo_runs_under_mpirun(demo, tmp_path):
     proc = subprocess.run(["mpirun", "-n", "2", sys.executable, str(demo)], cwd=tmp_path,
                           capture_output=True, text=True, stdin=subprocess.DEVNULL, env=ENV,

@@ -359,7 +359,7 @@ CASES: List[Case] = [
     Case("stiff-column-40-links", "40-link follower column (P = 9.5), 20 slabs (the fastest "
          "mode turns 1e3 rad per cell): converges (rel. error <= 1e-6)",
          lambda: _scaled_column(40, 9.5, T=2.5, slabs=20, cells=4, degree=4), tol=1e-6,
-         check=_versus_start_base),
+         slow=True, check=_versus_start_base),
     Case("stiff-curl3d-spring=1e6", "curl force on a stiff spring (omega = 1e3 in z), slow start, "
          "50 slabs: converges (rel. error <= 1e-8) at the slow motion's cost",
          lambda: RunConfig.create("curl3d", {"K": "0,0,0,0,0,0,0,0,1e6"}, T=10.0, slabs=50,

@@ -15,12 +15,11 @@ import time
 from contextlib import contextmanager
 from typing import Dict, Iterator, Mapping, Optional
 
-from dolfinx import fem
 from dolfinx.fem import petsc as fem_petsc
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from fem_dual.compat import destroy_petsc
+from fem_dual.compat import compile_form, destroy_petsc
 from fem_dual.errors import InputError, SolveError
 from fem_dual.petsc_check import (check_user_options, last_line, require_used, solver_prefix,
                                   user_options)
@@ -176,8 +175,8 @@ class CompiledSlab:
     def __init__(self, problem: SlabProblem):
         self.problem = problem
         tic = time.perf_counter()
-        self.a = fem.form(problem.jacobian)
-        self.L = fem.form(problem.residual)
+        self.a = compile_form(problem.jacobian)
+        self.L = compile_form(problem.residual)
         self.compile_s = time.perf_counter() - tic
         self.A = fem_petsc.create_matrix(self.a)
         self.b = fem_petsc.create_vector(self.L)

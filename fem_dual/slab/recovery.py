@@ -29,7 +29,7 @@ import ufl
 from dolfinx import fem
 from petsc4py import PETSc
 
-from fem_dual.compat import (CellPointEvaluator, destroy_petsc, vector_space,
+from fem_dual.compat import (CellPointEvaluator, compile_form, destroy_petsc, vector_space,
                              vector_space_dg1)
 from fem_dual.errors import SolveError
 from fem_dual.slab.pointwise_dtp import PointwiseDtP
@@ -53,7 +53,7 @@ class CellMomenta:
         space = vector_space(msh, problem.degree, bs, "DG")
         residual = ufl.derivative(problem.L_d * problem.dt * problem.dx, problem.w,
                                   ufl.TestFunction(space))
-        self._form = fem.form(residual)
+        self._form = compile_form(residual)
         self._vec = fem.petsc.create_vector(self._form)
         cells = msh.topology.index_map(1).size_local
         ends = space.dofmap.list.array.reshape(-1, problem.degree + 1)[:cells, :2]

@@ -10,7 +10,7 @@ from dolfinx import fem
 from mpi4py import MPI
 from scipy import sparse
 
-from fem_dual.compat import CellPointEvaluator, constant, vector_space
+from fem_dual.compat import CellPointEvaluator, compile_form, constant, vector_space
 from fem_dual.errors import InputError
 from fem_dual.analysis.orbit_input import Energy
 from fem_dual.slab.problem import SlabProblem
@@ -81,7 +81,7 @@ class OrbitProblem(SlabProblem):
             forms["R_E"] = ufl.derivative(E * self.dx, w, test)
             for a, va in params.items():
                 forms[f"E_{a}"] = ufl.diff(E, va) * self.dx
-        self.forms = {k: fem.form(v) for k, v in forms.items()}
+        self.forms = {k: compile_form(v) for k, v in forms.items()}
         self.momenta = CellMomenta(self)
         self._periodic = _periodic_merge(self.W, degree)
         self._base_eval = None
