@@ -9,10 +9,11 @@ of K_el (w, theta) the motion is M_ww w'' + K_c(P) w = 0 with
 (K_g, K_f act on w alone). The Schur complement of the assembled matrix subtracts numbers of
 size kGA/h to leave numbers of size EI/h^3, and the eigenvalue solvers then see K_c's norm: with
 kGA = 1e7 and 200 P2 cells that route moves omega_1 by 1.6e-5 (relative) and the flutter load by
-5e-5, ten times the discretisation error there. It is therefore evaluated in flexibility form. Let the reduced shear quadrature have points x_g and weights a_g (cell
-Jacobian included), B_w w = (w'(x_g))_g, B_t theta = (theta(x_g))_g, so that
-k_s = kGA (B_w w - B_t theta)^T A (B_w dw - B_t dtheta) with A = diag(a_g), and K_b the bending
-stiffness of theta. By the Woodbury identity
+5e-5, ten times the discretisation error there. It is therefore evaluated in flexibility form.
+Let the reduced shear quadrature have points x_g and weights a_g (cell Jacobian included),
+B_w w = (w'(x_g))_g, B_t theta = (theta(x_g))_g, so that k_s = kGA (B_w w - B_t theta)^T A
+(B_w dw - B_t dtheta) with A = diag(a_g), and K_b the bending stiffness of theta. By the
+Woodbury identity
 
     K_c = B_w^T C^-1 B_w,   C = (kGA A)^-1 + B_t K_b^-1 B_t^T,   G = K_b^-1 B_t^T C^-1 B_w,
 
