@@ -15,7 +15,9 @@ The transverse component -P w'(L) of the follower force does the virtual work
 -P w'(L) dw(L), hence +P K_f on the left-hand side; K_f is rank one and makes K(P)
 non-symmetric. The dead-load column buckles at P = pi^2 EI / (4 L^2); the follower-load column
 never diverges and flutters at P = 20.0509536 EI/L^2 (Beck 1952; Bolotin 1963) in the
-Euler-Bernoulli limit kGA -> inf (default kGA = 1e7 EI/L^2 is that limit to about 1e-6).
+Euler-Bernoulli limit kGA -> inf. The default kGA = 1e7 EI/L^2 is that limit to a few 1e-6:
+its shear flexibility lowers omega_1 by 2.3e-7, omega_2 by 1.6e-6 and the flutter load by
+3.1e-6 (relative).
 
 Both fields are Lagrange of `degree` (default P2) on `elements` cells. int_red is Gauss
 quadrature with `degree` points per cell (two for P2: quadrature degree 2 degree - 1), which
@@ -47,8 +49,9 @@ TIP = 1  # the facet tag of x = L
 @dataclass(frozen=True)
 class BeckParameters:
     """Beck's column. EI bending stiffness, rhoA mass per length, rhoI rotary inertia per length
-    (0: theta condensed), kGA shear stiffness, L length, P the tip load (compressive > 0),
-    elements cells of Lagrange `degree`, load "follower" (Beck) or "dead" (Euler).
+    (0: theta massless, M singular, use the condensed system), kGA shear stiffness, L length,
+    P the tip load (compressive > 0), elements cells of Lagrange `degree`, load "follower"
+    (Beck) or "dead" (Euler).
 
     The default of 100 P2 cells puts the flutter load within 1e-4 of Beck's value and
     omega_1, omega_2 within 1e-5 (see tests/continua/test_beck.py).

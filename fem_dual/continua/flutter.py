@@ -79,7 +79,7 @@ def beck_eigenvalues(beck: CondensedBeck, P: float) -> np.ndarray:
 
 def frequencies(beck: CondensedBeck, count: int = 2, P: float = 0.0) -> np.ndarray:
     """The lowest `count` circular frequencies omega = sqrt(lambda) at a load P below the
-    critical one (symmetric solve at P = 0: eigenvalues of M^1/2 F M^1/2 are 1/lambda)."""
+    critical one (at P = 0 the symmetric pencil (M F M, M): F M x = x / lambda)."""
     if P == 0.0:
         mu = sla.eigh(beck.M @ beck.F_el @ beck.M, beck.M, eigvals_only=True)
         lam = np.sort(1.0 / mu[::-1][:count])

@@ -98,7 +98,8 @@ class SpatialSystem:
             full.destroy()
 
     def refresh(self) -> None:
-        """Assemble M, K and D (again) from their compiled forms."""
+        """Assemble M, K and D (again) from their compiled forms; the previous matrices are
+        destroyed."""
         destroy_petsc(self.M, self.K, self.D)
         self.M = self.assemble(self.forms["m"])
         self.K = self.assemble(self.forms["k"])
