@@ -12,7 +12,7 @@ LAYERS = [
     {"errors", "quiet", "choices", "faults", "mpi", "compat"},
     {"forms", "meshes", "expression", "reference", "output", "petsc_check", "native"},
     {"scenes"},
-    {"slab"},
+    {"slab", "continua"},
     {"config", "inputs"},
     {"integrate"},
     {"analysis", "plots"},

@@ -29,6 +29,7 @@ from dolfinx.fem import petsc as fem_petsc
 from petsc4py import PETSc
 
 from fem_dual.compat import destroy_petsc, quiet_jit_logging
+from fem_dual.compat import compile_form as compat_compile_form
 from fem_dual.continua.dofs import (dirichlet_dofs, dof_layout, gather_csr, gather_rows,
                                     global_offset, index_set, leaf_spaces, owned_free)
 from fem_dual.continua.initial import interpolate_fields
@@ -41,11 +42,12 @@ DENSE_LIMIT = 2000
 
 
 def compile_form(a) -> fem.FormMetaClass:
-    """``fem.form`` of a UFL form (quietly); a compiled form is returned as it is."""
+    """A UFL form compiled (quietly, fem_dual.compat.compile_form); a compiled form is returned
+    as it is."""
     if isinstance(a, fem.FormMetaClass):
         return a
     with quiet_jit_logging():
-        return fem.form(a)
+        return compat_compile_form(a)
 
 
 class SpatialSystem:
