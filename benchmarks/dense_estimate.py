@@ -1,7 +1,7 @@
 """The interpolation error estimate between output vertices against the true interpolation
 error, on exact vertex values (the reference at the vertices), for a few forces and vertex
 spacings: the max over the times of the error and of the estimate (README, "Output at any
-time"). `--safety inf` gives the earlier estimate (the distance of the Hermites 7 and 5).
+time"). `--safety inf` gives the distance of the Hermites 7 and 5 without the contraction.
 
     .venv/bin/python benchmarks/dense_estimate.py [--safety 2]
 """

@@ -60,7 +60,7 @@ from pathlib import Path
 HENON_HEILES = "-x - 2*x*y, -y - x**2 + y**2"
 SWIRL = "-x - a*y**3, a*x - y"
 
-# a scene declared in a Python file (README "Your own force"; tests/test_force.py's FileSwirl)
+# a scene declared in a Python file (README "Your own force"; tests/scenes/test_force.py::FileSwirl)
 SWIRL_SCENE_FILE = '''\
 import dataclasses, ufl
 from typing import ClassVar

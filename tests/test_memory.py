@@ -1,9 +1,9 @@
 """Runs leave no memory behind. petsc4py 3.18 does not destroy a PETSc object whose Python wrapper
 is dropped: it stashes it as garbage on its communicator, which nothing cleans (the communicators
-DOLFINx duplicates per mesh are out of reach of PETSc.garbage_cleanup()), so every run() left its
-KSP or SNES, LU factor, matrix and ghosted vectors allocated: 159 KB per run of the ziegler case
-below, 288 KB of the curl3d one, linear over 300 runs (RssAnon, measured). run() now closes its
-Simulation (Simulation.close); the growth over 300 runs is 0.0 KB per run."""
+DOLFINx duplicates per mesh are out of reach of PETSc.garbage_cleanup()), so a run that only drops
+its KSP or SNES, LU factor, matrix and ghosted vectors leaves them allocated: 159 KB per run of the
+ziegler case below, 288 KB of the curl3d one, linear over 300 runs (RssAnon, measured). run()
+closes its Simulation (Simulation.close): the growth over 300 runs is 0.0 KB per run."""
 import subprocess
 import sys
 
@@ -41,8 +41,9 @@ gc.collect()
 print((anon_kb() - start) / runs)
 """
 RUNS = 200
-# KB per run: the old code grew 159 (ziegler) and 288 (curl3d) KB per run, linearly; closed, the
-# whole 300 runs grew 0.2-0.3 KB in all (one allocator step, < 2 KB per run over 200 runs)
+# KB per run: dropped, not closed, the PETSc objects grow 159 (ziegler) and 288 (curl3d) KB per
+# run, linearly; closed, the whole 300 runs grow 0.2-0.3 KB in all (one allocator step, < 2 KB per
+# run over 200 runs)
 LIMIT_KB = 20.0
 
 

@@ -1,4 +1,4 @@
-"""An installable package that leaves its host process alone (issue 16, item 9)."""
+"""An installable package that leaves its host process alone."""
 import logging
 import subprocess
 import sys
@@ -86,9 +86,9 @@ print(f"{status}|{','.join(heavy)}")
                                           (["orbit", "ziegler", "--period", "6", "--continue",
                                             "Q=0:1:2"], 2)])
 def test_help_version_and_bad_options_load_no_heavy_module(argv, status):
-    """They answer before DOLFINx, PETSc, MPI, UFL or scipy are imported (about 0.05 s instead
-    of 1.7 s, issue 17), bad values of a run included (1 s before: the configuration imported
-    the slab problem, the scenes their UFL forms, the command line MPI)."""
+    """They answer before DOLFINx, PETSc, MPI, UFL or scipy are imported (about 0.05 s, where
+    those imports take 1.7 s), bad values of a run included: checking them imports neither the
+    slab problem, nor the scenes' UFL forms, nor MPI for the command line (together 1 s)."""
     done = subprocess.run([sys.executable, "-c", _HEAVY, *argv], capture_output=True, text=True)
     got_status, heavy = done.stdout.strip().splitlines()[-1].split("|")
     assert int(got_status) == status, done.stderr
@@ -107,8 +107,8 @@ def test_a_bad_modal_request_loads_neither_dolfinx_nor_petsc():
 @pytest.mark.serial
 def test_a_linear_run_does_not_load_the_nonlinear_reference_integrator():
     """scipy.integrate (0.2-0.4 s of imports) serves DOP853 references of nonlinear scenes; a
-    linear scene's reference is the eigen-decomposition or expm (issue 17: a run imports only
-    what it needs)."""
+    linear scene's reference is the eigen-decomposition or expm: a run imports only what it
+    needs."""
     script = ("import sys\nfrom fem_dual.cli import main\n"
               "status = main(['run', 'ziegler', '--T', '2', '--slabs', '2', '--cells', '8'])\n"
               "print(status, 'scipy.integrate' in sys.modules)")

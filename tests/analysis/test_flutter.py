@@ -1,4 +1,4 @@
-"""Damped linear systems and the flutter load found by dual simulations (issue: beyond the
+"""Damped linear systems and the flutter load found by dual simulations (beyond the
 reference)."""
 import json
 
@@ -121,10 +121,10 @@ def test_general_damped_linear_system_against_the_matrix_exponential():
     assert np.all(observed_rates(errors) > 5.5), errors  # order 2p
 
 
-# Issue 16, item 8: `flutter` blamed the input for the noise of its own fit. A window too short
-# for the motion, a huge length scale (the frequencies scale like 1/l) and an under-resolved run
-# exited 2 "already unstable without load" (or, for the last, reported 0.40 for 2.086), though the
-# eigenvalues at P = 0 are purely imaginary.
+# `flutter` does not blame the input for the noise of its own fit. A window too short for the
+# motion, a huge length scale (the frequencies scale like 1/l) and an under-resolved run are not
+# "already unstable without load" (exit 2), nor a wrong load (0.40 for 2.086): the eigenvalues at
+# P = 0 are purely imaginary. The run says that it cannot resolve the growth (exit 3), or answers.
 @pytest.mark.serial
 @pytest.mark.parametrize("args, status", [
     (["--param", "l=1e6"], 3),  # slowest period 1.6e7 in a window of 40
@@ -162,7 +162,7 @@ def test_critical_load_refuses_a_rate_unstable_at_zero():
 
 
 def test_eigen_threshold_is_relative_to_the_frequencies():
-    """At l = 1e9 the frequencies are 1e-9: the former absolute threshold 1e-9 on the real part
+    """At l = 1e9 the frequencies are 1e-9: an absolute threshold 1e-9 on the real part would
     put the load at 5.0 l/c instead of 7/2 - sqrt 2."""
     from fem_dual.analysis.flutter import critical_load, eigen_rate, eigen_tolerance
     for l in (1e-3, 1.0, 1e9):
@@ -189,8 +189,8 @@ def _dyadic_times(lengths, cells=4):
 
 @pytest.mark.parametrize("P", [1.0, 2.2])  # stable; flutter
 def test_growth_fit_of_non_uniform_samples(P):
-    """Slabs of different lengths: only pairs a common step apart obey one map (the former fit
-    took t[1] - t[0] for every step)."""
+    """Slabs of different lengths: only pairs a common step apart obey one map (a fit taking
+    t[1] - t[0] for every step would mix maps)."""
     from fem_dual.analysis.flutter import fit_growth
     t = _dyadic_times([0.25] * 8 + [0.5] * 12 + [0.25] * 8 + [1.0] * 10)
     x, v = _exact_motion(t, P)

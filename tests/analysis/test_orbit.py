@@ -273,7 +273,7 @@ def test_sigint_stops_a_continuation_between_orbits_and_keeps_them(tmp_path):
         seen.append(proc.stderr.readline())
         assert seen[-1], "".join(seen)  # not the end of stderr before the first orbit
     proc.send_signal(signal.SIGINT)  # after the first orbit: the continuation stops after the
-    # orbit at hand (a fixed wait of 10 s once fell inside the first orbit's guess)
+    # orbit at hand (it waits for that line: a fixed wait can fall inside the first orbit's guess)
     out, err = proc.communicate(timeout=300)
     assert proc.returncode == 130, err
     assert "Traceback" not in err and "stopped" in err, err
@@ -315,7 +315,7 @@ def test_an_equilibrium_or_a_multiple_period_is_no_orbit():
     """The linear oscillator around x = 1 (period 2 pi) held at period 6.2832 collapses onto its
     equilibrium (it moves by 1e-7 and does not close): failed, saying so. A guess over twice
     (three times) the period finds the orbit run twice (three times): failed, naming the
-    period. (Found by a hostile test.)"""
+    period."""
     shifted = scene_of("force", {"F": "-(x - 1)"})
     r = _one_orbit(shifted, [1.001], 6.2832, cells=64, mode="period")
     assert r.status == "failed" and "equilibrium" in r.message
@@ -381,8 +381,7 @@ def test_energy_mode_from_the_linear_limit_to_negative_energies():
     orbits scaled in amplitude reach E = 1e-8, whose orbit closes with that energy (the
     potential by hand). A potential from V(0) = 0 can be negative: E = -0.1 in a well of
     x - x^3 (V = -x^2/2 + x^4/4 + y^2/2). A fast force (sin(40 x)) gets its energy from a finer
-    rule of the line integral: the energy of its orbit is (1 - cos 40x) / 40 + v^2 / 2. (Found
-    by a hostile test.)"""
+    rule of the line integral: the energy of its orbit is (1 - cos 40x) / 40 + v^2 / 2."""
     from fem_dual.analysis.orbit import Energy
 
     cases = [({"F": "-sin(x) + 0.3*y**2*sin(x), -2*y - 0.6*y*cos(x)"}, [1.4e-4, 0.0], 6.3, 1e-8,
@@ -409,10 +408,9 @@ def test_energy_mode_from_the_linear_limit_to_negative_energies():
 
 
 def test_no_energy_where_the_potential_cannot_be_integrated():
-    """A force singular at the origin has no potential V(0) = 0 there: no energy (was a
+    """A force singular at the origin has no potential V(0) = 0 there: no energy (not a
     quadrature's nonsense, -2.8e6), and mode energy is refused (exit 2, in test_bad_orbit_input);
-    -sin(40 x) needs more than
-    12 Gauss points (its energy was 0.57 % off). (Found by a hostile test.)"""
+    -sin(40 x) needs more than 12 Gauss points (with 12 its energy is 0.57 % off)."""
     from fem_dual.analysis.orbit_input import Energy
 
     singular = scene_of("force", {"F": "1/x**3 - x**3"})
@@ -427,9 +425,9 @@ def test_no_energy_where_the_potential_cannot_be_integrated():
 def test_orbits_far_from_the_origin_and_many_times_around():
     """Difference steps relative to the orbit's extent, not its offset: the pendulum pair
     -sin(x - 1000), sin(y - 1000) has multiplier exp(T) (y decoupled) to its estimate, and the
-    check agrees (it refused the orbit: steps of 1 at |x| = 1000); a Duffing orbit of amplitude
+    check agrees (steps of 1 at |x| = 1000 would refuse the orbit); a Duffing orbit of amplitude
     1e-3 around x = 1e4 is an orbit, not an equilibrium. A guess over 13 periods finds the orbit
-    run 13 times: failed, naming T/13 (the check stopped at 12). (Found by a hostile test.)"""
+    run 13 times: failed, naming T/13 (the check does not stop at 12)."""
     pair = scene_of("force", {"F": "-sin(x-1000), sin(y-1000)"})
     r = _one_orbit(pair, [1001.0, 1000.0], 6.7, cells=64)
     assert r.status == "ok", r.message
@@ -449,8 +447,7 @@ def test_orbits_far_from_the_origin_and_many_times_around():
 
 def test_multipliers_beyond_double_precision_are_named():
     """Multipliers exp(+-4T) ~ 1e10 and 1e-10: the small one is known only to eps |Phi|
-    ~ 1e-5; failed, saying that no resolution helps (it advised raising --cells). (Found by a
-    hostile test.)"""
+    ~ 1e-5; failed, saying that no resolution helps (not advising to raise --cells)."""
     scene = scene_of("force", {"F": "-x - x**3, 16*y"})
     r = _one_orbit(scene, [0.5, 0.0], 6.0, cells=32)
     assert r.status == "failed" and "double precision" in r.message
@@ -461,9 +458,9 @@ def test_multipliers_beyond_double_precision_are_named():
 def test_the_pair_at_1_is_deflated_not_split_by_the_jordan_block():
     """An orbit of a family has a Jordan block at 1 in its monodromy (the flow's direction and
     the family's): an error e in the monodromy moves its raw eigenvalues by sqrt(e), so a 1-dof
-    orbit near a separatrix printed multipliers 2.8 and 0.36 beside an estimate of 5e-15. With
+    orbit near a separatrix has raw multipliers 2.8 and 0.36 beside an estimate of 5e-15. With
     the flow's direction deflated the pair stays within O(e) of 1, and the nontrivial ones are
-    the monodromy's own. (Found by a hostile test.)"""
+    the monodromy's own."""
     from fem_dual.analysis.floquet import floquet_multipliers
 
     f = np.array([0.0, 1.0, 0.0, 0.0])  # the flow's direction; the family's is e_0
@@ -486,9 +483,8 @@ def test_the_pair_at_1_is_deflated_not_split_by_the_jordan_block():
 def test_energy_mode_says_what_it_reached_and_what_no_family_member_has(tmp_path):
     """Mode energy prints the energy asked for beside the one reached and the estimate of the
     energy's error (degree p against p + 1); an E below the energy of the equilibrium that the
-    guess's family surrounds is named as such, at once (it took 49 s of steps in energy to say
-    "give a guess nearer that energy"), and no orbit's advice names options of `run`. (Found by
-    a hostile test.)"""
+    guess's family surrounds is named as such, at once (not after 49 s of steps in energy that
+    end in "give a guess nearer that energy"), and no orbit's advice names options of `run`."""
     proc = _cli(["force", "--F", "-x - x**3", "--x0", "0.5", "--period", "6", "--cells", "32",
                  "--mode", "energy=0.2"], tmp_path)
     assert proc.returncode == 0, proc.stderr
@@ -508,7 +504,7 @@ def test_energy_mode_says_what_it_reached_and_what_no_family_member_has(tmp_path
 
 def test_no_energy_says_why(tmp_path):
     """Mode energy refused for a force whose potential a 96-point rule cannot integrate from
-    the origin says so, not "no finite potential". (Found by a hostile test.)"""
+    the origin says so, not "no finite potential"."""
     proc = _cli(["force", "--F", "-x - 0.5*sin(40*x)", "--x0", "10", "--period", "6", "--mode",
                  "energy=1"], tmp_path)
     assert proc.returncode == 2 and "varies too fast" in proc.stderr
@@ -516,10 +512,10 @@ def test_no_energy_says_why(tmp_path):
 
 def test_a_guess_far_from_the_orbit_restarts_on_its_newtons_image():
     """Duffing from x0 = 1 over 5.5 (the orbit through x0 = 1 has period 4.77; the family member
-    found is a smaller one): Newton's first try leaves the DtP map singular (it failed the
-    whole orbit); started again on the DtP image of its last iterate it converges, and the
+    found is a smaller one): Newton's first try leaves the DtP map singular (left there,
+    the orbit fails); started again on the DtP image of its last iterate it converges, and the
     polish on itself puts the period within 1e-12 of the quadrature at the orbit's energy (2e-8
-    without it). (Found by a hostile test.)"""
+    without it)."""
     scene = scene_of("force", {"F": "-x - x**3"})
     r = _one_orbit(scene, [1.0], 5.5, cells=64)
     assert r.status == "ok", r.message
@@ -547,10 +543,10 @@ def _variational_multipliers(F, DF, z0, T):
 def test_multipliers_have_no_difference_step_error():
     """Exact tangents of fem-dual's slab maps and the exact force Jacobian in the DOP853 check:
     on the x-mode (y = 0) of a force whose y**3 and y**5 terms vanish there, the multipliers
-    are those of the force without them. Difference steps of 1e-5 of the extent put fem-dual
-    6.1e-5 off with both the estimate (same step in the companion) and a differenced check
-    fooled (status ok; a hostile test built the y**5 term to match the check's error); a
-    stiffer y**3 alone failed with advice that could not help. (Found by a hostile test.)"""
+    are those of the force without them. Difference steps of 1e-5 of the extent would put
+    fem-dual 6.1e-5 off with both the estimate (same step in the companion) and a differenced
+    check fooled (status ok: the y**5 term is built to match such a check's error), and fail a
+    stiffer y**3 alone with advice that could not help."""
     def F(x):
         return np.array([-x[0] - x[0] ** 3 - 2 * x[0] * x[1] ** 2,
                          -2 * x[1] - 2 * x[0] ** 2 * x[1]])
@@ -575,7 +571,7 @@ def test_period_estimate_covers_the_orbit_through_its_start():
     """At p = 2 the discrete orbit's energy varies along it, and the exact period through its
     reported start differs from the reported one by dT/dE times that (1.6e-8 against an
     estimate of 1.3e-10 from the degree p + 1 difference alone): the estimate takes the return
-    time of the check's DOP853 motion (check.period) in. (Found by a hostile test.)"""
+    time of the check's DOP853 motion (check.period) in."""
     r = _one_orbit(scene_of("force", {"F": "-sin(x)"}), [2.5], 9.0, degree=2, cells=128)
     assert r.status == "ok", r.message
     x0, v0 = r.x[0][0], r.v[0][0]
@@ -589,9 +585,9 @@ def test_period_estimate_covers_the_orbit_through_its_start():
 
 @pytest.mark.serial
 def test_orbit_inputs_out_of_range_are_bad_input(capsys):
-    """Starts of size 1e-300 or 1e300 (a traceback of an overflow, or RuntimeWarnings before
-    exit 3), and cells beyond the orbit's limit named without a run's slabs. (Found by a
-    hostile test.)"""
+    """Starts of size 1e-300 or 1e300 are one line asking to rescale (not a traceback of an
+    overflow, nor RuntimeWarnings before exit 3), and cells beyond the orbit's limit are named
+    without a run's slabs."""
     for x0 in ("1e-300", "1e300"):
         assert main(["orbit", "force", "--F", "-x", "--x0", x0, "--period", "6"]) == 2
         err = capsys.readouterr().err.strip()

@@ -1,4 +1,4 @@
-"""The stress suite (issue 5): every case behaves as it must; the judge itself can fail."""
+"""The stress suite: every case behaves as it must; the judge itself can fail."""
 import json
 
 import pytest

@@ -187,10 +187,10 @@ def test_version(capsys):
 
 def test_a_failed_run_writes_its_partial_json_with_infinite_residuals_as_null(capsys,
                                                                             monkeypatch):
-    """A rejected attempt whose first residual overflowed kept inf in the residual history:
-    the partial result's JSON raised ValueError (a traceback, exit 1) instead of exit 3 with
-    the slabs kept (found by the session 16 hostile test; it predates the session). The rk4
-    base of that run, p + 1 steps a cell (session 17: 8 (p + 1)), led there."""
+    """A rejected attempt whose first residual overflows keeps inf in the residual history:
+    the partial result's JSON writes it as null, and the run ends with exit 3 and the slabs
+    kept, not a ValueError (a traceback, exit 1). An rk4 base of p + 1 steps a cell
+    (RK4_STEPS_PER_NODE = 1; the default is 8 (p + 1)) leads there."""
     monkeypatch.setattr("fem_dual.slab.problem.RK4_STEPS_PER_NODE", 1)
     assert main(["run", "curl3d", "--base", "rk4", "--T", "40", "--rtol", "1e-10", "--degree",
                  "6", "--cells", "8", "--json"]) == 3
@@ -201,11 +201,10 @@ def test_a_failed_run_writes_its_partial_json_with_infinite_residuals_as_null(ca
 
 
 def test_a_cache_home_that_is_a_file_is_bad_input(tmp_path, monkeypatch, capsys):
-    """FFCx and the compiled loops keep their libraries under $XDG_CACHE_HOME: a file there
-    ended every run in a traceback from the JIT, exit 1 (session 17 hostile test); now exit 2
-    naming it; so does a file above it (a cache home below a file: session 17's second hostile
-    test) or in place of its fenics folder. Listing the scenes compiles nothing and still
-    answers."""
+    """FFCx and the compiled loops keep their libraries under $XDG_CACHE_HOME: a file there is
+    exit 2 naming it, not a traceback from the JIT (exit 1); so is a file above it (a cache
+    home below a file) or in place of its fenics folder. Listing the scenes compiles nothing
+    and still answers."""
     cache = tmp_path / "cache"
     cache.write_text("")
     monkeypatch.setenv("XDG_CACHE_HOME", str(cache))

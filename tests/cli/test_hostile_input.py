@@ -1,4 +1,4 @@
-"""Randomised hostile input (issue 5), with hypothesis: whatever is thrown at the command line or
+"""Randomised hostile input, with hypothesis: whatever is thrown at the command line or
 the Python API, bad input is exit 2 (InputError) with one line naming the problem, no traceback,
 no output directory created, an existing output directory untouched.
 

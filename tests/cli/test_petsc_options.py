@@ -1,4 +1,4 @@
-"""PETSc options are input (issue 16, item 5): bad types and values, on the forms, Kronecker and
+"""PETSc options are input: bad types and values, on the forms, Kronecker and
 SNES paths, by --petsc-option or PETSC_OPTIONS, are exit 2 with one line naming the option
 before any work; options a solver's set-up leaves unused are exit 2 naming them; legit options
 run. Under MPI every rank raises the same InputError."""
@@ -53,7 +53,7 @@ def _assert_input_error(proc, *names):
     return lines[0]
 
 
-# --- the issue's reproductions, through the command line (a process each) -------------------
+# --- bad options through the command line (a process each) ----------------------------------
 
 REPRODUCTIONS = [
     pytest.param(ZIEGLER + _options("ksp_type=bogus"), None, ["ksp_type=bogus", "KSP"],
@@ -69,12 +69,12 @@ REPRODUCTIONS = [
     pytest.param(COLUMN + _options("ksp_type=bogus"), None, ["ksp_type=bogus"],
                  id="ksp_type-kronecker"),
     pytest.param(COLUMN + _options("pc_type=lu"), None, ["pc_type=lu", "kronecker"],
-                 id="lu-kronecker"),  # a traceback before
-    pytest.param(ZIEGLER + _options("pc_factor_mat_solver_type=nope"), None,
-                 ["pc_factor_mat_solver_type=nope", "mumps"], id="mat_solver_type"),  # exit 3
+                 id="lu-kronecker"),  # unchecked: a traceback
+    pytest.param(ZIEGLER + _options("pc_factor_mat_solver_type=nope"), None,  # unchecked: exit 3
+                 ["pc_factor_mat_solver_type=nope", "mumps"], id="mat_solver_type"),
     pytest.param(ZIEGLER + _options("ksp_typ=cg"), None, ["not used by the forms solver",
                                                           "ksp_typ", "ksp_type?"],
-                 id="misspelt-forms"),  # silently ignored before
+                 id="misspelt-forms"),  # unchecked: ignored
     pytest.param(ZIEGLER, "-dual_ziegler_ksp_typ cg",
                  ["not used by the forms solver", "-dual_ziegler_ksp_typ cg"],
                  id="PETSC_OPTIONS-misspelt"),
@@ -117,17 +117,17 @@ BAD = [
     pytest.param(ZIEGLER + _options("ksp_error_if_not_converged=maybe"),
                  ["ksp_error_if_not_converged=maybe", "boolean"], id="boolean"),
     pytest.param(ZIEGLER + _options("pc_type=python"), ["pc_type=python"],
-                 id="python-pc"),  # crashed PETSc (signal 11) before
+                 id="python-pc"),  # unchecked: PETSc crashes (signal 11)
     pytest.param(ZIEGLER + _options("ksp_type=gmres", "ksp_monitor_python="),
-                 ["ksp_monitor_python"], id="python-monitor"),  # crashed PETSc before
+                 ["ksp_monitor_python"], id="python-monitor"),  # unchecked: PETSc crashes
     pytest.param(CURL3D + _options("snes_type=aspin"), ["snes_type=aspin"],
-                 id="aspin"),  # crashed PETSc before
+                 id="aspin"),  # unchecked: PETSc crashes
     pytest.param(CURL3D + _options("snes_type=ngs"), ["snes_type=ngs"],
-                 id="ngs"),  # crashed PETSc before
+                 id="ngs"),  # unchecked: PETSc crashes
     pytest.param(ZIEGLER + _options("ksp_type=gmres", "pc_type=bddc"), ["bddc", "MATIS"],
-                 id="set-up-failure"),  # exit 3 after a slab's work before
+                 id="set-up-failure"),  # unchecked: exit 3 after a slab's work
     pytest.param(COLUMN + _options("pc_type=jacobi"), ["pc_type=jacobi"],
-                 id="jacobi-kronecker"),  # a traceback before
+                 id="jacobi-kronecker"),  # unchecked: a traceback
     pytest.param(COLUMN + _options("pc_factor_mat_solver_type=mumps"),
                  ["pc_factor_mat_solver_type=mumps", "kronecker"], id="factor-kronecker"),
     pytest.param(COLUMN + _options("ksp_type=bicg"), ["ksp_type=bicg", "transpose"],
@@ -168,9 +168,10 @@ def test_legit_options_run(args, capsys):
 
 @pytest.mark.serial
 def test_a_snes_type_without_a_jacobian_fails_cleanly(capsys):
-    """anderson never forms the Jacobian; the round-off test took its norm and PETSc crashed
-    (exit 1, 'Not for unassembled matrix'). It is assembled at the state SNES stopped at: a
-    Newton failure that halves the slab, then exit 3 with the reason, or an answer."""
+    """anderson never forms the Jacobian, whose norm the round-off test takes (unassembled,
+    PETSc fails: exit 1, 'Not for unassembled matrix'). It is assembled at the state SNES
+    stopped at: a Newton failure that halves the slab, then exit 3 with the reason, or an
+    answer."""
     from fem_dual.cli import main
 
     status = main(CURL3D + _options("snes_type=anderson"))
@@ -349,9 +350,9 @@ def test_cli_under_mpirun(args):
 @pytest.mark.parametrize("superpose", ["auto", "no"])
 def test_a_loosened_ksp_tolerance_costs_iterations_not_accuracy(scene, params, options,
                                                                 superpose):
-    """A loose ksp_rtol left an algebraic error that no estimate saw (the companion, stopped
-    by the same test, does not show it): a 6-link column erred by 1.24e-6 with an estimate of
-    6.0e-7 and said ok. The solves are refined to the default's residual now."""
+    """A loose ksp_rtol leaves an algebraic error that no estimate sees (the companion, stopped
+    by the same test, does not show it): unrefined, a 6-link column errs by 1.24e-6 with an
+    estimate of 6.0e-7 and says ok. The solves are refined to the default's residual."""
     args = dict(T=3.0, slabs=10, degree=3, cells=4, superpose=superpose)
     exact = run(RunConfig.create(scene, params, assembly="auto" if scene == "column" else "forms",
                                  **args))  # (the default KSP, as the loosened one's path)

@@ -1,4 +1,4 @@
-"""Validate before allocating, for every scene and every API entry point (issue 16, item 6).
+"""Validate before allocating, for every scene and every API entry point.
 
 - A scene's number of dofs is checked against the memory rule (fem_dual.scenes.base: its dense
   n x n matrices within DENSE_BUDGET) before anything sized by n exists: exit 2 in a process
@@ -64,8 +64,8 @@ def test_max_dofs_is_the_largest_within_the_budget():
                                                                     "large"),
 ])
 def test_too_many_dofs_refused_before_allocating(argv, named, tmp_path):
-    """The issue's reproductions: a 74.5 GiB allocation (exit 1, MemoryError) before; now exit 2
-    and one line, in a process capped at 2 GB of address space."""
+    """Exit 2 and one line, in a process capped at 2 GB of address space, not an allocation of
+    74.5 GiB (exit 1, MemoryError)."""
     proc = subprocess.run(FEM_DUAL + argv + ["--cells", "4", "--out", str(tmp_path / "out")],
                           capture_output=True, text=True, stdin=subprocess.DEVNULL,
                           preexec_fn=_capped, timeout=300)
@@ -91,15 +91,16 @@ def test_too_many_dofs_refused_before_allocating(argv, named, tmp_path):
     (["curl2d", "--param", "m=1e-320"], "m=1e-320 is subnormal"),
     (["curl2d", "--param", "beta=1e-320"], "beta=1e-320 is subnormal"),
     (["force", "--F", "a*x", "--x0", "1", "--param", "a=1e-320"], "a=1e-320 is subnormal"),
-    # these ended as Newton failures with infinite residuals (exit 3, "use smaller slabs")
+    # unchecked, these end as Newton failures with infinite residuals (exit 3, "use smaller
+    # slabs")
     (["curl3d", "--v0", "1e300,0,0"], "v0=1e+300"),
     (["curl3d", "--param", "alpha=1e300"], "alpha=1e+300 is out of range"),
     (["curl3d", "--param", "beta=1e-300"], "beta=1e-300 is out of range"),
     (["force", "--F", "exp(x)", "--x0", "700"], "the force at x0=700.0"),
 ])
 def test_subnormal_and_overflowing_parameters(argv, named, capsys):
-    """Each ended in a traceback (LinAlgError, OverflowError), a solve failure or a message
-    naming M for m1 before."""
+    """Each is exit 2 with one line naming it; unchecked, each ends in a traceback
+    (LinAlgError, OverflowError), a solve failure or a message naming M for m1."""
     capsys.readouterr()
     assert main(["run"] + argv + ["--cells", "4"]) == 2
     captured = capsys.readouterr()
@@ -141,8 +142,8 @@ def test_normal_extremes_are_accepted():
     (ExpressionForce(F="a*x", values=(("a", float("nan")),)), "a=nan is not finite"),
 ])
 def test_scene_objects_are_validated(scene, named):
-    """Before, RunConfig.create(Ziegler(m1=-1.0)) ran to "ok"; a Column of 1e12 links ended in
-    MemoryError."""
+    """Unchecked, RunConfig.create(Ziegler(m1=-1.0)) runs to "ok" and a Column of 1e12 links
+    ends in MemoryError."""
     with pytest.raises(InputError) as info:
         RunConfig.create(scene, x0=[1.0] if isinstance(scene, ExpressionForce) else None)
     assert named in str(info.value) and "\n" not in str(info.value), str(info.value)

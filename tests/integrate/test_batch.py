@@ -1,4 +1,4 @@
-"""Linear scenes in chunks (issue 17, item 1): the slabs of one length come from their slab maps
+"""Linear scenes in chunks: the slabs of one length come from their slab maps
 in a few array products, judged and recorded as the slab loop does one by one."""
 import numpy as np
 import pytest

@@ -37,7 +37,7 @@ def test_halving_then_growing_back_covers_the_interval():
 def test_a_length_rejected_again_waits_twice_as_long():
     """An error just above the tolerance at one length and below it at half of it: each
     attempt at the long length after the wait fails, and the waits double, so the attempts
-    thin out (they were every other slab)."""
+    thin out (not one every other slab)."""
     schedule = SlabSchedule(1000.0, 1000, max_halvings=1)
     attempts, slabs = 0, 0
     while not schedule.done():
@@ -75,8 +75,9 @@ def test_halving_stops_at_the_minimum_length():
 
 
 def test_fixed_slabs_keep_their_length_until_one_is_rejected():
-    """A slab accepted close to the tolerance (factor below 1) shortened the next fixed slab:
-    two half slabs every few dozen slabs, each pair breaking a chunk of equal slabs."""
+    """A slab accepted close to the tolerance (factor below 1) does not shorten the next fixed
+    slab (an adaptive schedule's does): that would give two half slabs every few dozen slabs,
+    each pair breaking a chunk of equal slabs."""
     fixed = SlabSchedule(10.0, 10, max_halvings=3, shrinks=False)
     adaptive = SlabSchedule(10.0, 10, max_halvings=3)
     for schedule in (fixed, adaptive):

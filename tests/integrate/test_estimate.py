@@ -1,5 +1,5 @@
-"""Issue 13: every answer carries an error estimate computed without a reference; no wrong answer
-is reported as a success; --rtol chooses the slab lengths.
+"""Every answer carries an error estimate computed without a reference; no wrong answer is
+reported as a success; --rtol chooses the slab lengths.
 
 The references are independent: the matrix exponential (linear scenes) and DOP853 at
 rtol = atol = 1e-13 (nonlinear scenes), which is why errors below about 1e-11 are not judged.
@@ -69,8 +69,9 @@ def test_estimate_converges_with_the_error(degree, rate):
     assert all(1.0 <= _ratio(r) <= 10.0 for r in results), [_ratio(r) for r in results]
 
 
-# The issue's wrong answers reported as ok, at the user's own settings: each must now either
-# converge (relative error below the acceptance rule, 1e-3 of the motion's scale) or stop.
+# Settings that invite a wrong answer reported as ok (growth, long horizons, coarse slabs, tiny
+# masses, weak preconditioners), as the user gives them: each must either converge (relative error
+# below the acceptance rule, 1e-3 of the motion's scale) or stop.
 WRONG_BEFORE = [
     ("ziegler", {"P": "3"}, {}),
     ("ziegler", {}, {"T": 100, "cells": 50, "degree": 4}),
@@ -111,7 +112,7 @@ def test_refuses_when_it_cannot_shorten():
 @pytest.mark.mpi
 def test_refining_by_slabs_keeps_order_2p():
     """Short slabs' Newton stops relative to what the slab can reach, not at an absolute 1e-10
-    (before: 3.5e-10 with 4 slabs, 1.4e-10 with 8, against 9.9e-14 with 1)."""
+    (which leaves 3.5e-10 with 4 slabs, 1.4e-10 with 8, against 9.9e-14 with 1)."""
     errors = [run(RunConfig.create("curl3d", T=2.0, cells=8, degree=4, slabs=k)).error["x_max"]
               for k in (1, 4, 8)]
     assert max(errors) < 2e-12, errors
@@ -226,16 +227,16 @@ def test_stall_detection():
     assert stalled([1.0, 0.19, 0.19, 0.19, 0.18, 1e-3, 1e-8, 1e-14])
 
 
-# -- found by a hostile run (hostile-user helper) -----------------------------------------------
+# -- user options, tight tolerances, equilibria and unstable motions ----------------------------
 @pytest.mark.parametrize("scene, option", [
     ("curl2d", {"snes_stol": "0.5"}), ("curl2d-lifted", {"snes_stol": "0.5"}),
     ("curl3d", {"snes_rtol": "1e-2"}), ("curl3d", {"snes_type": "ksponly"}),
     ("curl2d", {"snes_max_it": "1"}),
 ])
 def test_loosened_newton_options_cannot_hide_the_error(scene, option):
-    """Newton stopped early by user options used to pass with an estimate 50x to 1e5x below the
-    true error (the companion stopped by the same test): now the answer's own Newton error (one
-    more Newton step) is part of the estimate.""" 
+    """Newton stopped early by user options stops the companion by the same test, so their
+    difference alone misses the algebraic error (by 50x to 1e5x in these cases): the answer's
+    own Newton error (one more Newton step) is part of the estimate.""" 
     try:
         r = run(RunConfig.create(scene, petsc=option))
     except SolveError as exc:
@@ -256,7 +257,7 @@ def test_unknown_petsc_types_are_bad_input(option, capsys):
 @pytest.mark.mpi
 @pytest.mark.parametrize("rtol", [1e-10, 1e-11])
 def test_tight_rtol_on_a_linear_scene(rtol):
-    """Round-off-level local errors used to drive the slabs to 1e-11 and a refusal."""
+    """Round-off-level local errors do not drive the slabs towards 1e-11 and a refusal."""
     r = run(RunConfig.create("ziegler", rtol=rtol, degree=6, cells=4))
     assert r.error["x_max"] <= rtol * r.tolerance["scale_x"]
     assert min(r.slab_lengths) > 1e-3
@@ -267,16 +268,17 @@ def test_tight_rtol_on_a_linear_scene(rtol):
                                                ("curl2d", {"k": "0"}, None),
                                                ("curl3d", {}, "0,0,0")])
 def test_equilibria_are_answered(scene, params, x0):
-    """A start at rest in an equilibrium (F = 0) used to stop with "Newton did not converge
-    (residual 0 after 0 iterations)"."""
+    """A start at rest in an equilibrium (F = 0) is answered: a residual of 0 is a solved slab,
+    not "Newton did not converge (residual 0 after 0 iterations)"."""
     r = run(RunConfig.create(scene, params, x0=x0))
     assert r.status == "ok" and _actual(r) <= 1e-14 and r.error_estimate <= 1e-11
 
 
 # Near curl3d's unstable equilibrium x = (1e3, 0, 0) a perturbation of 1e-9 grows 3000-fold per
-# 0.25 of time. Slabs of 8 cells missed the growth, and so did their degree p + 1 companion: the
-# run ended ok with an estimate of 5e-8 against a true error of 1e9. The slab tangent's
-# phase-space volume (det = 1 for any force F(x)) shows the slab does not follow the motion.
+# 0.25 of time. Slabs of 8 cells miss the growth, and so does their degree p + 1 companion: judged
+# by their difference alone the run would end ok with an estimate of 5e-8 against a true error of
+# 1e9. The slab tangent's phase-space volume (det = 1 for any force F(x)) shows the slab does not
+# follow the motion.
 UNSTABLE = dict(x0="1e3,0,0", v0="0,1e-9,0", cells=8, degree=3)
 
 
@@ -295,9 +297,9 @@ def test_a_slab_that_misses_an_unstable_motion_is_not_vouched_for(base):
 
 @pytest.mark.mpi
 def test_the_snes_path_judges_volume_by_difference_tangents():
-    """PETSc's SNES on the forms has no exact tangent: without the volume check there,
-    `curl3d --x0 1e3,0,0 --v0 0,1e-9,0 --cells 8 --assembly forms` ended ok 444 off with an
-    estimate of 1.6e-8; its 2n difference tangents now show it (serial and distributed)."""
+    """PETSc's SNES on the forms has no exact tangent: its 2n difference tangents give the
+    volume check there (serial and distributed), without which `curl3d --x0 1e3,0,0 --v0
+    0,1e-9,0 --cells 8 --assembly forms` would end ok 444 off with an estimate of 1.6e-8."""
     try:
         r = run(RunConfig.create("curl3d", assembly="forms", **UNSTABLE))
     except SolveError:
@@ -323,8 +325,8 @@ def test_volume_defect_of_exact_flows():
 
 def test_the_predictor_base_is_judged_by_volume_where_a_mode_grows():
     """The predictor base damps what the cells do not resolve; a saddle's growth is no fast
-    oscillation: `--base predictor` on the stable manifold of F = 1e4 x ended ok 13 off with an
-    estimate of 2e-3 (a hostile test), and curl3d's unstable equilibrium ok 444 off."""
+    oscillation. Without the volume check `--base predictor` on the stable manifold of F = 1e4 x
+    would end ok 13 off with an estimate of 2e-3, and curl3d's unstable equilibrium ok 444 off."""
     cases = [("force", {"F": "1e4*x"}, dict(x0="1", v0="-100", T=0.15, cells=16, degree=4)),
              ("curl3d", None, dict(T=2, **UNSTABLE))]
     for scene, params, args in cases:

@@ -2,13 +2,15 @@
 or says why not, and its JSON stays JSON.
 
 - An exponentially growing motion whose reference overflows before the answer does: the error
-  is compared while the reference is finite, and the JSON says where it stopped (it was NaN in
-  the JSON encoder before: a traceback after a successful solve).
+  is compared while the reference is finite, and the JSON says where it stopped (a NaN there
+  would make the JSON encoder raise: a traceback after a successful solve).
 - A growing mode absent from the start state adds 0 to the reference, not inf * 0 = NaN.
-- A start state of size 1e-200: the growth bound's |z0| underflowed to 0 and refused every slab.
-- A motion past e^700: the growth bound capped its exponent at 700 and refused the run there.
-- A particle at rest: its velocity's round-off was the scale its velocity errors were weighed
-  against, and every slab was refused.
+- A start state of size 1e-200: the growth bound's |z0| does not underflow to 0 (which would
+  refuse every slab).
+- A motion past e^700: the growth bound's exponent is not capped at 700 (which would refuse the
+  run there).
+- A particle at rest: its velocity's round-off is not the scale its velocity errors are weighed
+  against (which would refuse every slab).
 """
 import json
 
@@ -58,7 +60,7 @@ def test_a_reference_that_overflows_is_compared_until_it_does(capsys):
 
 
 def test_a_growing_motion_with_an_absent_mode_writes_json(capsys):
-    """The case that crashed the JSON encoder (reference x = inf * 0 in its second dof)."""
+    """Reference x = inf * 0 in its second dof, a NaN that would crash the JSON encoder."""
     capsys.readouterr()
     assert main(["run", "linear", "--param", "dofs=2", "--param", "M=1", "--param",
                  "K=-1,0,0,-4", "--slabs", "357", "--T", "357", "--degree", "3", "--cells", "4",
@@ -88,8 +90,8 @@ def test_a_particle_at_rest_stays_at_rest():
 
 def test_a_motion_that_overflows_h_d_says_so():
     """Flutter grows until H_d, quadratic in the state, overflows at |z| ~ 1e154: the run keeps
-    what it computed and says why it stopped, not "try more slabs" (it was refused as noise
-    when the growth bound's 2-norm overflowed first)."""
+    what it computed and says why it stopped, not "try more slabs" (a growth bound whose 2-norm
+    overflowed first would refuse the motion as noise)."""
     with pytest.raises(Exception) as info:
         run(RunConfig.create("ziegler", {"P": "3"}, T=1000, slabs=1000, cells=4, degree=3))
     message = str(info.value)

@@ -1,4 +1,4 @@
-"""The round-off floor (issue 5): refinement keeps reducing the error down to about 1e-12.
+"""The round-off floor: refinement keeps reducing the error down to about 1e-12.
 
 Without staging, the error of a single slab stops falling and then grows like (cells p^2)^2: the
 slab matrix's condition number amplifies the round-off of its assembly. Staging (the
@@ -24,7 +24,7 @@ def test_refinement_reaches_the_floor_and_stays_there():
     assert errors[0] > 1e-6  # a real refinement study, not a flat line
     first = next(i for i, e in enumerate(errors) if e <= 1e-11)
     assert np.all(np.diff(np.log(errors[:first + 1])) < -np.log(4)), errors  # falling fast
-    assert max(errors[first:]) <= 1e-11, errors  # the floor, target of the issue
+    assert max(errors[first:]) <= 1e-11, errors  # on the floor, and it stays there
 
 
 @pytest.mark.mpi

@@ -1,4 +1,4 @@
-"""Output that scales and survives faults (issue 16): streamed XDMF/HDF5, kill -9, SIGINT and
+"""Output that scales and survives faults: streamed XDMF/HDF5, kill -9, SIGINT and
 SIGTERM, --resume, a full disk, stale files, an error on rank 0 only under MPI."""
 import json
 import os

@@ -497,7 +497,7 @@ def test_a_compiled_newton_that_gives_up_leaves_the_start_to_the_numpy_iteration
 
 @compiled
 def test_a_compiled_newton_that_gives_up_leaves_the_implicit_map_as_it_was():
-    """The C loop solved the implicit DtP map at its trial states in place: when it gives up,
+    """The C loop solves the implicit DtP map at its trial states in place: when it gives up,
     the map's root goes back to where it was, and the numpy iteration ends where it ends
     alone (a slab of curl2d from the zero base, whose full steps the numpy line search
     shortens)."""
@@ -574,7 +574,7 @@ def test_the_reference_of_a_scene_with_a_mass_matrix_takes_it():
 def test_a_reused_simulation_reports_the_loops_of_each_run():
     """Whether the implicit DtP map ran compiled is known once it has run: a simulation whose
     first run failed before any DtP solve (the rk4 base overflowed) says `dtp` for its next
-    run, as a fresh one does (it kept the first run's list once)."""
+    run, as a fresh one does (not the first run's list)."""
     from fem_dual.errors import SolveError
     from fem_dual.integrate.simulation import Simulation
 

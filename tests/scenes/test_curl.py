@@ -82,9 +82,9 @@ def test_lifted_newton_ends_quadratically():
 
 @pytest.mark.parametrize("assembly", ["pointwise", "forms"])
 def test_unbalanced_weights_converge_at_their_round_off(assembly):
-    """alpha = 1e3, beta = 1e-3: |J| ~ 3e5, so the residual stalls near |J| eps |w| ~ 1e-10;
-    Newton was called diverged there (residual 3.4e-11, exit 3) although the slab was solved
-    (the error 1.8e-10 within the estimate). The round-off floor now includes |J| eps |w|."""
+    """alpha = 1e3, beta = 1e-3: |J| ~ 3e5, so the residual stalls near |J| eps |w| ~ 1e-10,
+    where the slab is solved (the error 1.8e-10 within the estimate). The round-off floor
+    includes |J| eps |w|, so Newton is not called diverged there (residual 3.4e-11, exit 3)."""
     r = run(RunConfig.create("curl3d", {"alpha": "1e3", "beta": "1e-3"}, T=0.5, cells=8,
                              degree=3, max_halvings=0, assembly=assembly))
     err = max(r.error["x_max"], r.error["v_max"])

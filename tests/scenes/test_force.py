@@ -1,4 +1,4 @@
-"""Your own force end to end (issue 15): `run force --F`, output at any time, --reference none,
+"""Your own force end to end: `run force --F`, output at any time, --reference none,
 --csv, --plot, bad input."""
 from __future__ import annotations
 
@@ -179,7 +179,7 @@ def test_a_bad_scene_file_is_one_line_and_exit_2(tmp_path, capsys, text, piece):
     assert err.count("\n") == 1 and piece in err
 
 
-# -- regressions from a hostile run of this issue's features -----------------------------------
+# -- edge cases: one component, t-eval times, the estimate between vertices, bad input ---------
 def test_one_component_on_the_predictor_base():
     r = run(RunConfig.create("force", {"F": "-x"}, T=0.5, cells=10, x0="0.5", base="predictor"))
     assert r.status == "ok" and r.error["x_max"] < 1e-8
@@ -194,7 +194,7 @@ def test_repeated_and_unsorted_t_eval_times():
 
 def test_the_estimate_covers_the_t_eval_times_at_high_degree():
     """p = 5: the vertices beat the Hermite's O(h^8); the estimate must still cover the
-    values between them (it missed them by 240x before)."""
+    values between them (an estimate of the vertices alone misses them by 240x here)."""
     r = run(RunConfig.create("force", {"F": "-x - a*y**3, a*x - y", "a": "0.5"}, T=4, cells=1,
                              degree=5, rtol=1e-9, x0="1,0", v0="0,0.5",
                              t_eval="0.1:3.9:39"))
@@ -203,9 +203,10 @@ def test_the_estimate_covers_the_t_eval_times_at_high_degree():
 
 
 def test_rtol_holds_at_the_t_eval_times_between_far_vertices():
-    """p = 8 with one cell per slab: the vertices meet rtol 1e-8 with 14 slabs, but the times
-    between them were 1.3e-3 off (status ok, estimate 4e-2). The gaps between vertices are now
-    judged with the slab: the controller keeps the slabs short enough for the t-eval times."""
+    """p = 8 with one cell per slab: the vertices meet rtol 1e-8 with 14 slabs, where the times
+    between them are 1.3e-3 off (estimate 4e-2), which a run judged at its vertices alone would
+    call ok. The gaps between vertices are judged with the slab: the controller keeps the slabs
+    short enough for the t-eval times."""
     common = dict(T=2, rtol=1e-8, cells=1, degree=8, x0="1")
     plain = run(RunConfig.create("force", {"F": "-100*x"}, **common))
     dense = run(RunConfig.create("force", {"F": "-100*x"}, t_eval="0:2:201", **common))
@@ -295,9 +296,9 @@ def test_scene_files_that_are_not_scenes(tmp_path, capsys, name, text, piece):
 @pytest.mark.parametrize("assembly", ["pointwise", "forms"])
 def test_a_start_at_rest_at_the_origin_under_a_force_converges(assembly):
     """x'' = 1 - x from rest at 0 with the rk4 base: the first residual is at round-off, and
-    the absolute floor scaled with the start state (zero) left Newton no test it could reach
-    (every halving failed with DIVERGED_LINE_SEARCH at 1e-17; found by the session 16 hostile
-    test, it predates the session). The floor now scales with the slab's impulse dt |F(x0)|."""
+    an absolute floor scaled with the start state (zero) would leave Newton no test it could
+    reach (every halving failing with DIVERGED_LINE_SEARCH at 1e-17). The floor scales with the
+    slab's impulse dt |F(x0)|."""
     r = run(RunConfig.create("force", {"F": "1 - x"}, x0="0", base="rk4", assembly=assembly))
     assert r.status == "ok"
     assert abs(r.x[-1, 0] - (1 - np.cos(r.t[-1]))) <= max(r.error_estimate, 1e-13)

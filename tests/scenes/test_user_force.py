@@ -64,7 +64,7 @@ def test_user_force_parameters_are_validated():
 @pytest.mark.parametrize("name", ["M", "Binv", "D"])
 def test_the_forms_own_constant_names_are_not_parameters(name, capsys):
     """A parameter named as a constant the forms read (D: the damping matrix) is bad input,
-    exit 2 naming it; D ended in a UFL traceback (session 18's hostile test)."""
+    exit 2 naming it, not a UFL traceback."""
     from fem_dual.cli import main
 
     assert main(["run", "force", "--F", f"-{name}*x", "--param", f"{name}=2", "--x0", "1",
@@ -74,8 +74,8 @@ def test_the_forms_own_constant_names_are_not_parameters(name, capsys):
 
 
 def test_parameters_that_derivatives_remove_are_not_a_wrong_answer():
-    """The worst case of the constant slots (session 16 hostile test): on the old code this run
-    ended ok with an estimate of 1.0e-8 and was 0.048 off."""
+    """The worst case of the constant slots: with constants in the wrong slots of the kernel
+    this run ends ok with an estimate of 1.0e-8, 0.048 off; its answer is within its estimate."""
     r = run(RunConfig.create("force", {"F": "a + b*x + c*x**2 - x**3", "a": "0.1", "b": "0.2",
                                        "c": "0.3"}, x0="0.5"))
     assert r.status == "ok"
@@ -84,10 +84,10 @@ def test_parameters_that_derivatives_remove_are_not_a_wrong_answer():
 
 @pytest.mark.parametrize("a", [-2.0, 0.5])
 def test_a_parameter_that_derivatives_remove_keeps_the_other_constants_in_place(a):
-    """F = a leaves G_x = alpha without a: 0.5.2's Expression packed a anyway, and every later
-    constant slid into the wrong slot of the kernel (exit 3, 'DtP map is near singular', for
-    a < 1; found by the session 16 hostile test). F = -x - a is F = -x about x = -a: the same
-    motion shifted, to round-off."""
+    """F = a leaves G_x = alpha without a: DOLFINx 0.5.2's Expression packs a anyway, and a
+    kernel bound without it would slide every later constant into the wrong slot (exit 3, 'DtP
+    map is near singular', for a < 1). F = -x - a is F = -x about x = -a: the same motion
+    shifted, to round-off."""
     common = dict(T=2, cells=4, degree=4, staging="off")
     r = run(RunConfig.create("force", {"F": "a", "a": str(a)}, x0="0.5", **common))
     assert r.status == "ok" and r.error["x_max"] <= r.error_estimate

@@ -1,5 +1,5 @@
 """The Kronecker (time x space) path of linear scenes: matrix-free CG with the
-fast-diagonalisation preconditioner (issue 7, columns of many links)."""
+fast-diagonalisation preconditioner, for columns of many links."""
 import re
 
 import numpy as np
@@ -91,9 +91,9 @@ def test_a_long_scaled_column_converges_to_the_matrix_exponential():
 @pytest.mark.mpi
 @pytest.mark.parametrize("links", [20, pytest.param(40, marks=pytest.mark.slow)])
 def test_unresolved_modes_that_the_slab_map_amplifies_stop_the_run(links):
-    """The same column with slabs far too long for its fastest modes, on the old base state
-    (the slab's start, which amplifies them): before, the noise grew to 1e20 with status ok.
-    Now either exit 3 naming the cause, or the slabs are shortened until the estimate vouches
+    """The same column with slabs far too long for its fastest modes, on the start base state
+    (the slab's start, which amplifies them: the noise grows to 1e20): never that noise with
+    status ok, but either exit 3 naming the cause, or slabs shortened until the estimate vouches
     for the answer, and then it is right. (The default zero base damps them: test_stiff.)"""
     scene, x0 = _scaled_column(links, 9.5)
     config = RunConfig.create(scene, T=2.5, slabs=20, cells=4, degree=4, x0=x0,
@@ -128,9 +128,9 @@ def test_parallel_kronecker_equals_serial():
 
 @pytest.mark.serial
 def test_the_predictor_base_is_never_dropped_silently(capsys):
-    """The Kronecker form holds the start or zero base only: --base predictor ran the zero base
-    there and reported "predictor". Now auto assembly takes the forms, and an explicit
-    kronecker assembly is refused."""
+    """The Kronecker form holds the start or zero base only: with --base predictor auto
+    assembly takes the forms, and an explicit kronecker assembly is refused, so the zero base
+    never runs under the name "predictor"."""
     config = RunConfig.create("column", {"links": "6", "P": "0.1"}, base="predictor")
     assert not config.kronecker and config.base_state == "predictor"
     assert RunConfig.create("column", {"links": "6", "P": "0.1"}, base="zero").kronecker

@@ -1,4 +1,4 @@
-"""Issue 17: the rk4 base state (fem_dual.slab.base_state.FlowPredictor) lets Newton converge on long
+"""The rk4 base state (fem_dual.slab.base_state.FlowPredictor) lets Newton converge on long
 slabs of a nonlinear motion that is not stiff, so --rtol takes the slabs accuracy needs, with the
 same error estimate. References: DOP853 at rtol = atol = 1e-13 (the scenes' own)."""
 import numpy as np
@@ -110,9 +110,9 @@ def test_a_repeated_run_steps_its_base_again():
 
 
 def test_the_companion_steps_its_own_base_with_twice_the_steps():
-    """A base error the answer and its companion shared would cancel in their difference:
-    curl3d T = 8 --rtol 1e-10 at p = 6 and one cell ended ok 6.2e-11 off (a 30-digit
-    reference agrees) with an estimate of 3.8e-12, the companion about as far off."""
+    """A base error the answer and its companion shared would cancel in their difference: on
+    a shared base, curl3d T = 8 --rtol 1e-10 at p = 6 and one cell ends ok 6.2e-11 off (a
+    30-digit reference agrees) with an estimate of 3.8e-12, the companion about as far off."""
     config = RunConfig.create("curl3d", T=8, cells=1, degree=6, rtol=1e-10, base="rk4")
     sim = Simulation.for_config(config)
     try:
@@ -142,8 +142,8 @@ def test_rk4_base_on_a_linear_scene_is_bad_input(capsys):
 @pytest.mark.parametrize("assembly", ["forms", "pointwise"])
 def test_rk4_base_in_parallel_equals_serial(assembly):
     """On forms distributed over the processes each holds the nodes of its own cells: the rk4
-    steps must still be those of the whole slab (they once were those of the local nodes' span,
-    and `mpirun -n 2` gave an error of 7.4e-10 and an estimate of 1.5e-9 against the serial
+    steps must still be those of the whole slab (steps over the local nodes' span alone give,
+    under `mpirun -n 2`, an error of 7.4e-10 and an estimate of 1.5e-9 against the serial
     3.2e-10 and 6.7e-10)."""
     from mpi4py import MPI
 
@@ -159,7 +159,8 @@ def test_rk4_base_in_parallel_equals_serial(assembly):
 
 def test_snes_stops_at_the_residuals_round_off_unless_the_user_sets_atol():
     """The rk4 base's first residual is ~1e-8: SNES's relative test (1e-13) is out of reach, and
-    it took ten steps at 1e-16; the absolute round-off test of the pointwise path ends it."""
+    alone it takes ten steps at 1e-16; the absolute round-off test of the pointwise path ends
+    it."""
     common = dict(T=4, slabs=2, cells=4, degree=4, base="rk4", staging="off")
     ours = run(RunConfig.create("curl3d", assembly="forms", **common))
     pointwise = run(RunConfig.create("curl3d", assembly="pointwise", **common))
@@ -177,8 +178,8 @@ def test_snes_stops_at_the_residuals_round_off_unless_the_user_sets_atol():
     ("force", {"F": "1+exp(-10*x*x)"}, dict(x0="0", v0="1", T=4, slabs=4, base="rk4"))])
 def test_forms_path_with_no_newton_step_has_its_jacobian(case):
     """A slab that starts at the residual's round-off takes no SNES step: the estimate's
-    tangent and extra Newton step need the Jacobian at that state (it was never assembled:
-    'Not for unassembled matrix', or held an earlier slab's). Both paths agree."""
+    tangent and extra Newton step need the Jacobian assembled at that state (not missing:
+    'Not for unassembled matrix', nor an earlier slab's). Both paths agree."""
     from mpi4py import MPI
 
     scene, params, extra = case

@@ -1,5 +1,5 @@
 """Stiff systems: the zero base state damps what the slabs do not resolve, modal coordinates keep
-the order of the resolved modes under a follower load (issue 14)."""
+the order of the resolved modes under a follower load."""
 from __future__ import annotations
 
 import numpy as np
@@ -58,11 +58,12 @@ def test_the_zero_base_slab_map_never_amplifies():
 
 
 def test_the_start_base_amplifies_unresolved_modes():
-    """The old base state (the slab's start, held constant): rho grows like (Omega/c)/(p+1)^2,
-    the mechanism the zero base removes (this is why --base start keeps the resolution guard)."""
+    """The start base state (the slab's start, held constant): rho grows like
+    (Omega/c)/(p+1)^2, the mechanism the zero base removes (this is why --base start keeps the
+    resolution guard)."""
     scene = _oscillator()
     rho = spectral_radius(slab_map(scene, 4, 1, 1e3, "start", kronecker=True))
-    assert 20 < rho < 80, rho  # issue 14 measured 40
+    assert 20 < rho < 80, rho  # 40 here
 
 
 @pytest.mark.parametrize("p,c", [(2, 1), (4, 4)])
@@ -105,15 +106,15 @@ def _slow_error(r) -> float:
 @pytest.mark.parametrize("coordinates", ["physical", "modal"])
 def test_two_modes_cost_what_the_slow_one_needs(coordinates):
     """omega = 1 and 1e3, T = 10, 20 slabs of one P4 cell (2 radians of the slow mode per slab,
-    1000 of the fast one): issue 14 measured 6e13 on the start base; the zero base is right to
-    the order of the slow mode, the fast mode stays at round-off, and the estimate vouches."""
+    1000 of the fast one): the start base errs by 6e13 here; the zero base is right to the
+    order of the slow mode, the fast mode stays at round-off, and the estimate vouches."""
     scene = _two_modes()
     assert scene.frequency_spread() == pytest.approx(1e3)
     r = run(RunConfig.create(scene, T=10, slabs=20, cells=1, degree=4, x0="1,0", v0="0,0",
                              coordinates=coordinates, assembly="forms"))
     assert r.status == "ok" and r.solver["rejected_slabs"] == 0
     error = _slow_error(r)
-    assert error < 1e-7, error  # issue 14: 5e-9
+    assert error < 1e-7, error  # 5e-9 here
     assert error <= r.error_estimate <= 20 * error, (error, r.error_estimate)
     fast = np.abs(r.x[:, 1]).max()  # the fast mode's share of the position
     assert fast < 1e-10, fast

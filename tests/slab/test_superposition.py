@@ -104,7 +104,7 @@ def test_superpose_input_is_validated():
 def test_the_slab_map_check_refuses_growth_not_round_off():
     """Within one radian of the fastest mode per slab every mode is resolved: an excess of the
     map's radius there is round-off of the basis or truncation error (a 4.5e-12 slab of the
-    6-link column chosen by rtol 1e-10 was refused as amplifying for 3e-12 times 1e12 slabs);
+    6-link column chosen by rtol 1e-10 is not amplifying for 3e-12 times 1e12 slabs);
     a decaying map is not refused for its distance from the exact decay; a map that grows
     where the flow does not is."""
     from fem_dual.errors import SolveError
