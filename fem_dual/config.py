@@ -140,18 +140,37 @@ class RunConfig:
     coordinates: str = "auto"  # linear scenes: physical, modal, auto (see modal)
     reference: str = "auto"  # auto: the scene's reference; none: skip it (error is null)
     t_eval: Optional[np.ndarray] = None  # extra output times (dense output, fem_dual.integrate.dense)
+    max_slabs: int = 5000  # --rtol: a run predicted to take more slabs stops (exit 3)
 
     @functools.cached_property
     def base_state(self) -> str:  # cached: stiff_at_start differentiates the force
-        """The base state in use: `base`, with auto resolved. Linear scenes with energy weights
-        (stiff ones): zero, residual-free, damps what the slabs do not resolve. Nonlinear scenes
-        stiff at the start: the predictor (fem_dual.slab.base_state). Otherwise the start state,
-        the reference's time staging, as accurate and cheaper there."""
+        """The base state in use: `base`, with auto resolved (`base_choice`). Linear scenes with
+        energy weights (stiff ones): zero, residual-free, damps what the slabs do not resolve;
+        other linear scenes: the start state (the reference's time staging). Nonlinear scenes
+        stiff at the start: the predictor (fem_dual.slab.base_state); others: with --rtol rk4,
+        near the motion, so that Newton converges on long slabs and the dual correction is
+        small; on fixed slabs the start state."""
+        return self.base_choice[0]
+
+    @functools.cached_property
+    def base_choice(self) -> Tuple[str, str]:
+        """(the base state in use, why): `base`, or auto resolved from the problem."""
         if self.base != "auto":
-            return self.base
+            return self.base, "asked for (--base)"
         if self.scene.linear:
-            return "zero" if self._stiff_linear else "start"
-        return "predictor" if stiff_at_start(self.scene, self.x0, self.v0) else "start"
+            if self._stiff_linear:
+                return "zero", ("auto: a stiff linear scene (energy weights): the zero base "
+                                "damps the modes the slabs do not resolve")
+            return "start", "auto: a linear scene that is not stiff"
+        if stiff_at_start(self.scene, self.x0, self.v0):
+            return "predictor", ("auto: stiff at the start (a fast mode of the linearised "
+                                 "force beyond the motion's own rate): the predictor damps it")
+        if self.rtol is None:
+            return "start", ("auto: fixed slabs of a motion not stiff at the start: the start "
+                             "state, whose error the degree p + 1 companion sees in full")
+        return "rk4", ("auto: --rtol on a motion not stiff at the start: classical Runge-Kutta "
+                       "from each slab's start, which the dual correction refines, so that the "
+                       "controller's slabs are long")
 
     @property
     def _stiff_linear(self) -> bool:
@@ -215,7 +234,8 @@ class RunConfig:
 
     @classmethod
     def create(cls, scene: Union[str, Scene], params: Optional[Mapping[str, object]] = None, *,
-               T: Optional[Number] = None, cells: Number = 100, degree: Number = 2,
+               T: Optional[Number] = None, cells: Optional[Number] = None,
+               degree: Optional[Number] = None,
                slabs: Number = 1, x0: Optional[Union[str, Sequence[float]]] = None,
                v0: Optional[Union[str, Sequence[float]]] = None,
                out: Optional[Union[str, Path]] = None,
@@ -225,29 +245,34 @@ class RunConfig:
                rtol: Optional[Number] = None, atol: Optional[Number] = None,
                base: str = "auto", coordinates: str = "auto", reference: str = "auto",
                t_eval: Optional[Union[str, Sequence[float]]] = None,
+               max_slabs: Number = 5000, u0: Optional[Union[str, Sequence[str]]] = None,
                check_petsc: bool = True) -> "RunConfig":
         """Validate every input; raises InputError naming the first bad value.
 
         With `rtol` (and optionally `atol`) the slab lengths are chosen by the error estimate
-        so that the estimated error stays within atol + rtol * scale (see fem_dual.integrate.estimate);
-        `slabs` is then only the first guess's upper bound and must be left at 1."""
+        so that the estimated error stays within atol + rtol * scale (see
+        fem_dual.integrate.estimate); `slabs` must then be left at 1. `cells` and `degree`
+        left out are the defaults of the run's kind (`default_discretisation`)."""
         scene = scene_of(scene, params)
         T_value = _horizon(scene, T)
+        rtol_value = None if rtol is None else tolerance_value("rtol", rtol)
+        cells, degree = default_discretisation(rtol_value, cells, degree)
         cells_, degree_, slabs_ = _discretisation(cells, degree, slabs)
-        x0_, v0_ = _start_state(scene, x0, v0)
+        x0_, v0_ = _start_state(scene, x0, v0, u0)
         out_, petsc_ = output_path(out), petsc_options(petsc)
         halvings = whole_number("max-halvings", max_halvings, minimum=0)
         if halvings > 30:
             raise InputError(f"max-halvings={max_halvings!r} is too large (at most 30)")
+        budget = whole_number("max-slabs", max_slabs, minimum=1)
         _check_choices(scene, petsc_, superpose, staging, recovery, assembly, base, coordinates,
                        reference)
         times = None if t_eval is None else parse_times(t_eval, T_value)
         if not scene.linear:
             _force_at_start(scene, x0_)
-        rtol_, atol_ = _tolerances(rtol, atol, slabs, slabs_)
+        rtol_, atol_ = _tolerances(rtol_value, atol, slabs, slabs_)
         config = cls(scene, T_value, cells_, degree_, slabs_, x0_, v0_, out_, petsc_, halvings,
                      superpose, staging, recovery, assembly, rtol_, atol_, base, coordinates,
-                     reference, times)
+                     reference, times, budget)
         if check_petsc:
             config.check_petsc()
         return config
@@ -264,7 +289,7 @@ class RunConfig:
                 "base": self.base, "coordinates": self.coordinates,
                 "recovery": self.recovery, "assembly": self.assembly,
                 "staging": self.staging, "superpose": self.superpose,
-                "max_halvings": self.max_halvings, "petsc": dict(sorted(self.petsc.items())),
+                "max_halvings": self.max_halvings, "max_slabs": self.max_slabs, "petsc": dict(sorted(self.petsc.items())),
                 "version": __version__}
 
     def check_petsc(self) -> None:
@@ -282,6 +307,28 @@ class RunConfig:
             raise InputError(f"assembly=pointwise uses no PETSc solver: the PETSc options "
                              f"({given}, from PETSC_OPTIONS) need assembly=forms")
         check_user_options(prefix, self.petsc, path)
+
+
+FIXED_CELLS, FIXED_DEGREE = 100, 2  # fixed slabs: cells per slab and degree by default
+ADAPTIVE_CELLS = 4  # --rtol: cells per slab by default (the controller chooses the lengths)
+
+
+def adaptive_degree(rtol: float) -> int:
+    """The degree --rtol takes by default: the order 2p of the vertex values grows with the
+    digits asked, p = round(-log10(rtol) / 2) + 1 within [2, 6] (3 at 1e-4, 4 at 1e-6, 5 at
+    1e-8, 6 at 1e-10): a slab then spans about as much of the motion at every tolerance, and
+    the cost follows the tolerance (docs/performance.md has the measurements)."""
+    return int(min(6, max(2, round(-math.log10(rtol) / 2) + 1)))
+
+
+def default_discretisation(rtol: Optional[float], cells, degree) -> Tuple[Number, Number]:
+    """(cells, degree) with what was left out (None) filled in: for fixed slabs FIXED_CELLS
+    and FIXED_DEGREE, with --rtol ADAPTIVE_CELLS and `adaptive_degree(rtol)`."""
+    if rtol is None:
+        return (FIXED_CELLS if cells is None else cells,
+                FIXED_DEGREE if degree is None else degree)
+    return (ADAPTIVE_CELLS if cells is None else cells,
+            adaptive_degree(rtol) if degree is None else degree)
 
 
 def _horizon(scene: Scene, T: Optional[Number]) -> float:
@@ -308,11 +355,21 @@ def _discretisation(cells: Number, degree: Number, slabs: Number) -> Tuple[int, 
     return cells_, degree_, slabs_
 
 
-def _start_state(scene: Scene, x0, v0) -> Tuple[np.ndarray, np.ndarray]:
-    """(x0, v0): the scene's defaults or the given vectors, within STATE_MAX."""
+def _start_state(scene: Scene, x0, v0, u0=None) -> Tuple[np.ndarray, np.ndarray]:
+    """(x0, v0): the scene's defaults or the given vectors, within STATE_MAX; for a continuum
+    scene from its start fields u0, v0 (expressions of the spatial coordinates)."""
     n = scene.n
-    x0_ = parse_vector("x0", scene.default_x0 if x0 is None else x0, n)
-    v0_ = parse_vector("v0", scene.default_v0 if v0 is None else v0, n)
+    if scene.continuum:
+        if x0 is not None:
+            raise InputError(f"scene {scene.name} starts from fields: give --u0 (one expression "
+                             "per field component), not --x0")
+        x0_, v0_, _ = scene.start_state(u0, v0)
+    elif u0 is not None:
+        raise InputError(f"u0 gives the start fields of a continuum scene ({scene.name} is "
+                         "not one): give --x0")
+    else:
+        x0_ = parse_vector("x0", scene.default_x0 if x0 is None else x0, n)
+        v0_ = parse_vector("v0", scene.default_v0 if v0 is None else v0, n)
     for name, value in (("x0", x0_), ("v0", v0_)):
         within_state_max(f"{name}={','.join(map(repr, map(float, value)))}", value,
                          "rescale the coordinates")
@@ -371,11 +428,11 @@ def _force_at_start(scene: Scene, x0: np.ndarray) -> None:
                      "rescale the force or the coordinates")
 
 
-def _tolerances(rtol: Optional[Number], atol: Optional[Number], slabs: Number,
+def _tolerances(rtol_: Optional[float], atol: Optional[Number], slabs: Number,
                 slab_count: int) -> Tuple[Optional[float], float]:
-    """(rtol, atol): rtol sets the tolerance (atol only beside it) and chooses the lengths
-    (slabs left at 1)."""
-    rtol_ = None if rtol is None else tolerance_value("rtol", rtol)
+    """(rtol, atol): rtol (checked already) sets the tolerance (atol only beside it) and
+    chooses the lengths (slabs left at 1)."""
+    rtol = rtol_
     if atol is not None and rtol is None:
         raise InputError(f"atol={atol!r} needs rtol (atol alone sets no tolerance)")
     atol_ = 0.0 if atol is None else tolerance_value("atol", atol)

@@ -37,7 +37,6 @@ __all__ = ["COLUMNS", "bench", "write_csv", "read_csv", "plot", "table", "ratio_
 
 COLUMNS = ["method", "degree", "cells", "slabs", "rtol", "max_error", "final_error", "wall_s",
            "compile_s", "samples", "estimate", "slabs_solved", "expm_wall_s"]
-ADAPTIVE_CELLS = 4  # cells per slab of the fem-dual --rtol rows
 TOLERANCES = {"RK45": [1e-4, 1e-6, 1e-8, 1e-10], "DOP853": [1e-6, 1e-8, 1e-10, 1e-12],
               "DOP853-f": [1e-6, 1e-8, 1e-10, 1e-12], "Radau": [1e-4, 1e-6, 1e-8],
               "LSODA": [1e-6, 1e-8, 1e-10, 1e-12]}
@@ -90,33 +89,31 @@ def _fem_rows(base: RunConfig, degrees: Sequence[int], cells: Sequence[int],
               slabs: Sequence[int], repeats: int, comm: MPI.Comm,
               skipped: Optional[List[str]] = None,
               rtols: Sequence[float] = ()) -> List[Dict]:
-    rows = []
-    for degree in degrees:
-        for n in sorted(set(cells) | ({ADAPTIVE_CELLS} if rtols else set())):
-            # the timed runs compare with no reference: the row's error is measured after
-            # them, against the same reference (_fem_row), so the run does not pay for it
-            common = dict(T=base.T, cells=n, degree=degree, x0=base.x0, v0=base.v0,
-                          staging="off", base=base.base, coordinates=base.coordinates,
-                          reference="none")
-            configs = []
-            if n in cells:
-                configs += [RunConfig.create(base.scene, slabs=k, **common) for k in slabs]
-            if n == ADAPTIVE_CELLS:
-                configs += [RunConfig.create(base.scene, rtol=tol, **common) for tol in rtols]
-            if not configs:
-                continue
-            sim = Simulation.for_config(configs[0], comm)  # compiled once per degree and cells
-            compile_s = sim.setup_s
-            try:
-                for config in configs:
-                    what = (f"p={degree} cells={n} " + (
-                        f"slabs={config.slabs}" if config.rtol is None
-                        else f"rtol={config.rtol:g}"))
-                    row = _fem_row(sim, config, repeats, compile_s, skipped, what)
-                    if row is not None:
-                        rows.append(row)
-            finally:
-                sim.close()  # petsc4py keeps what is dropped (Simulation.close)
+    """fem-dual's rows: fixed slabs over the degrees and cells asked, and one `--rtol` row per
+    tolerance with the defaults of `fem-dual run --rtol` (its cells and degree)."""
+    # the timed runs compare with no reference: the row's error is measured after them,
+    # against the same reference (_fem_row), so the run does not pay for it
+    common = dict(T=base.T, x0=base.x0, v0=base.v0, staging="off", base=base.base,
+                  coordinates=base.coordinates, reference="none")
+    configs = [RunConfig.create(base.scene, slabs=k, cells=n, degree=degree, **common)
+               for degree in degrees for n in sorted(set(cells)) for k in slabs]
+    configs += [RunConfig.create(base.scene, rtol=tol, **common) for tol in rtols]
+    rows, sim = [], None  # compiled once per degree, cells and base state
+    try:
+        for config in configs:
+            if sim is None or not sim.matches(config):
+                if sim is not None:
+                    sim.close()
+                sim = Simulation.for_config(config, comm)
+                compile_s = sim.setup_s
+            what = (f"p={config.degree} cells={config.cells} " + (
+                f"slabs={config.slabs}" if config.rtol is None else f"rtol={config.rtol:g}"))
+            row = _fem_row(sim, config, repeats, compile_s, skipped, what)
+            if row is not None:
+                rows.append(row)
+    finally:
+        if sim is not None:
+            sim.close()  # petsc4py keeps what is dropped (Simulation.close)
     return rows
 
 
@@ -211,8 +208,8 @@ def bench(base: RunConfig, degrees: Sequence[int] = (2, 3, 4),
           skipped: Optional[List[str]] = None, rtols: Sequence[float] = ()) -> List[Dict]:
     """All rows of the study (the same list on every rank); `slabs` defaults to base.slabs.
     Configurations the tool refuses are left out and listed in `skipped`. `rtols` adds
-    fem-dual --rtol rows (ADAPTIVE_CELLS cells per slab, each degree) and the peers at the same
-    tolerances."""
+    fem-dual --rtol rows (the defaults of `fem-dual run --rtol`: cells and degree from the
+    tolerance) and the peers at the same tolerances."""
     if not isinstance(base, RunConfig):
         raise InputError(f"base must be a RunConfig (RunConfig.create(...)), not "
                          f"{type(base).__name__}")

@@ -12,7 +12,7 @@ from fem_dual.errors import InputError
 __all__ = ["build_parser", "key_value", "join_negative_values"]
 
 # Options whose value may start with "-" (negative numbers): "--x0 -1,2" is joined to "--x0=-1,2".
-_VALUE_OPTIONS = ("--T", "--x0", "--v0", "--param", "--cells", "--degree", "--slabs",
+_VALUE_OPTIONS = ("--T", "--x0", "--v0", "--u0", "--param", "--cells", "--degree", "--slabs",
                   "--max-halvings", "--rtol", "--atol", "--F", "--t-eval", "--period",
                   "--mode", "--continue")
 
@@ -68,15 +68,22 @@ def _add_problem_arguments(p: argparse.ArgumentParser, slabs_help: str) -> None:
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                    help="scene parameter (repeatable); matrices as a11,a12,... or a scalar")
     p.add_argument("--x0", help="initial position a,b,...")
-    p.add_argument("--v0", help="initial velocity a,b,...")
+    p.add_argument("--v0", help="initial velocity a,b,...; continuum scenes (beck, cauchy2d): "
+                   "the velocity field, one expression per field component")
+    p.add_argument("--u0", help="continuum scenes: the start field, one expression per field "
+                   "component in the spatial coordinates (x; x, y), e.g. \"0.01*x**2, 0.02*x\"")
 
 
 def _run(sub) -> None:
     """`run`: solve one scene."""
     r = sub.add_parser("run", help="solve one scene and compare it with its reference")
     _add_problem_arguments(r, "number of equal time slabs (default 1)")
-    r.add_argument("--cells", default="100", help="time cells per slab (default 100)")
-    r.add_argument("--degree", default="2", help="polynomial degree of the dual fields (default 2)")
+    r.add_argument("--cells", help="time cells per slab (default 100; with --rtol 4)")
+    r.add_argument("--degree", help="polynomial degree of the dual fields (default 2; with --rtol "
+                   "from the tolerance: 3 at 1e-4, 4 at 1e-6, 5 at 1e-8, 6 at 1e-10)")
+    r.add_argument("--max-slabs", default="5000", help="with --rtol: a run predicted to need "
+                   "more slabs than this (from the lengths of the last slabs) stops with the "
+                   "figure, exit 3 (default 5000)")
     r.add_argument("--max-halvings", default="6", help="nonlinear scenes: a slab whose Newton "
                    "fails is retried halved, at most this many times (default 6)")
     r.add_argument("--superpose", default="auto", help="linear scenes: yes = every slab from "
@@ -105,8 +112,10 @@ def _run(sub) -> None:
                    "nearly residual-free), rk4 (nonlinear scenes that are not stiff: classical "
                    "Runge-Kutta from the slab start; Newton converges on longer slabs, --rtol "
                    "takes fewer), start (the slab's start state held constant), auto "
-                   "(default) = zero for stiff linear scenes, predictor for nonlinear ones "
-                   "stiff at the start, start otherwise")
+                   "(default) = zero for stiff linear scenes, start for other linear ones, "
+                   "predictor for nonlinear ones stiff at the start, otherwise rk4 with --rtol "
+                   "and start on fixed slabs (the JSON's solver.base and solver.base_reason say "
+                   "which and why)")
     r.add_argument("--coordinates", default="auto", help="linear scenes: modal (solve in the "
                    "modes of (K, M): resolved modes keep order 2p under a follower load, "
                    "unresolved ones are damped), physical, auto (default) = modal on the zero "

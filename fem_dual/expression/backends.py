@@ -11,8 +11,8 @@ import ufl
 from fem_dual.expression.grammar import MAX_EXPONENT, _error, _quote
 from fem_dual.expression.tree import _Backend, _Bin
 
-__all__ = ["_UFL_ERRORS", "_NumpyBackend", "_Dual", "_DualBackend", "_ConstantChecker",
-           "_UFLBackend"]
+__all__ = ["_UFL_ERRORS", "_NumpyBackend", "_BranchBackend", "_Dual", "_DualBackend",
+           "_ConstantChecker", "_UFLBackend"]
 
 # UFL 2022.2 raises its own UFLException (division by zero while folding constants); later
 # versions raise ValueError.
@@ -42,6 +42,21 @@ class _NumpyBackend(_Backend):
 
     def parameter(self, name):
         return np.float64(self.values[name])
+
+
+class _BranchBackend(_NumpyBackend):
+    """numpy on one branch of the force's kinks: abs(u) is s u with the sign s given for each
+    kink (by its argument's text), so the force is smooth across the kink (the continuation of
+    the branch the motion is on: what an integrator that stops at the kink needs)."""
+
+    def __init__(self, x: np.ndarray, values: Mapping[str, float], signs: Mapping[str, float]):
+        super().__init__(x, values)
+        self.signs = signs
+
+    def apply(self, operation, operands, node):
+        if getattr(node, "function", None) == "abs" and node.argument.source in self.signs:
+            return self.signs[node.argument.source] * operands[0]
+        return operation(*operands)
 
 
 class _Dual:

@@ -8,10 +8,10 @@ import numpy as np
 import ufl
 
 from fem_dual.errors import InputError
-from fem_dual.expression.backends import (_UFL_ERRORS, _Dual, _DualBackend, _NumpyBackend,
-                                          _UFLBackend)
+from fem_dual.expression.backends import (_UFL_ERRORS, _BranchBackend, _Dual, _DualBackend,
+                                          _NumpyBackend, _UFLBackend)
 from fem_dual.expression.grammar import _error, _quote
-from fem_dual.expression.tree import _evaluate, _Node
+from fem_dual.expression.tree import _Call, _evaluate, _Node
 
 __all__ = ["ForceExpression"]
 
@@ -58,6 +58,39 @@ class ForceExpression:
         with np.errstate(all="ignore"):
             return np.array([_evaluate(node, backend) for node in self._components],
                             dtype=np.float64)
+
+    def branch(self, x, values: Mapping[str, float], signs) -> np.ndarray:
+        """F(x) as `numpy`, on the branch of the kinks where their arguments have the `signs`
+        (one +1 or -1 per kink, in `kinks` order): abs(u) is sign * u there."""
+        point = np.asarray(x, dtype=np.float64)
+        chosen = {node.source: float(s) for node, s in zip(self.kinks, signs)}
+        backend = _BranchBackend(point, values, chosen)
+        with np.errstate(all="ignore"):
+            return np.array([_evaluate(node, backend) for node in self._components],
+                            dtype=np.float64)
+
+    @property
+    def kinks(self) -> Tuple[_Node, ...]:
+        """The arguments of its non-smooth functions (abs): where one changes sign, the force's
+        derivative jumps."""
+        found, stack = [], list(self._components)
+        while stack:
+            node = stack.pop()
+            if isinstance(node, _Call) and node.function == "abs":
+                found.append(node.argument)
+            stack += [getattr(node, name) for name in ("operand", "left", "right", "argument")
+                      if hasattr(node, name)]
+        unique = {node.source: node for node in found}  # (the same text is the same kink)
+        return tuple(unique[key] for key in sorted(unique))
+
+    def kink_values(self, x: np.ndarray, values: Mapping[str, float]) -> np.ndarray:
+        """(points, kinks): the kinks' arguments at the points `x` (points, n)."""
+        points = np.asarray(x, dtype=np.float64).reshape(-1, self.n)
+        backend = _NumpyBackend(points.T, values)
+        with np.errstate(all="ignore"):
+            columns = [np.broadcast_to(_evaluate(node, backend), (len(points),))
+                       for node in self.kinks]
+        return np.column_stack(columns) if columns else np.zeros((len(points), 0))
 
     def jacobian(self, x, values: Mapping[str, float]) -> np.ndarray:
         """dF/dx at a point `x` (n, n), exactly (forward-mode differentiation of the tree;

@@ -42,6 +42,7 @@ def run(config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD, progress: bool = Fal
     if resume and config.out is None:
         raise InputError("resume needs the output directory of the run to go on with (--out)")
     sim = Simulation.for_config(config, comm)  # (bad or unused PETSc options raise InputError)
+    failure = None
     try:
         if config.out is not None:  # a bad --out is bad input, on every rank
             check_output_dir_on_root(comm, config.out, create=False)
@@ -50,13 +51,10 @@ def run(config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD, progress: bool = Fal
         if config.out is not None:
             check_output_dir_on_root(comm, config.out)
         result = sim.run(config, progress, resume)
-    except (SolveError, InputError):  # raised on every rank alike: close collectively
-        sim.close()
-        del sim
-        gc.collect(1)
-        raise
-    # any other exception may be one rank's own: a collective close could hang, so its
-    # objects are left to petsc4py's garbage
+    except (SolveError, InputError) as exc:  # raised on every rank alike: close collectively
+        failure = exc
+    # (any other exception may be one rank's own: a collective close could hang, so its
+    # objects are left to petsc4py's garbage)
     sim.close()
     # The simulation's objects (UFL expressions, compiled kernels, the slab problem) hold each
     # other in reference cycles, which Python frees when its cycle collector next runs: a
@@ -64,4 +62,6 @@ def run(config: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD, progress: bool = Fal
     # keep a flat footprint (tests/test_memory.py)
     del sim
     gc.collect(1)
+    if failure is not None:
+        raise failure
     return result

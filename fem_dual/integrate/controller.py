@@ -61,6 +61,8 @@ def schedule_for(config: RunConfig, cells: int, rate: float) -> SlabSchedule:
                         first=initial_fraction(rate, config.T, cells))
 
 
+CUT_RESOLUTION = 1e-9  # a cut slab ends this fraction of its length before the cut, at most
+MAX_UNITS = 2 ** 52  # positions stay exact in float64 (t0 = pos T / total): refinement stops
 FIRST_PATIENCE = 4  # slabs a rejected length is not tried again, after its first rejection
 MAX_PATIENCE = 256  # ... doubled after each repeated rejection up to this
 
@@ -80,6 +82,10 @@ class SlabSchedule:
     Positions are kept as integers in units of the minimum length, so start times carry no
     accumulated round-off and equal slabs start exactly at k T / slabs.
 
+    A slab may be cut to end at a given time (`cut`: a kink of the force inside it); from then
+    on lengths are still powers of two, but no longer aligned to their multiples (the last slab
+    is short where it meets T).
+
     Args:
         T: horizon.
         slabs: number of nominal slabs.
@@ -91,7 +97,7 @@ class SlabSchedule:
             accepted close to the tolerance made two half slabs every few dozen slabs).
     """
 
-    STATE_SIZE = 5  # len(state)
+    STATE_SIZE = 6  # len(state)
 
     def __init__(self, T: float, slabs: int, max_halvings: int = 0, first: float = 1.0,
                  shrinks: bool = True):
@@ -103,15 +109,17 @@ class SlabSchedule:
         self.ceiling = 0  # units; 0: no rejected length to keep below
         self.wait = 0  # accepted slabs before the ceiling may be tried again
         self.patience = 0  # the wait after the next rejection at the ceiling (halved)
+        self.aligned = 1  # 0 after a cut: lengths no longer divide their start positions
 
     @property
-    def state(self) -> Tuple[int, int, int, int, int]:
+    def state(self) -> Tuple[int, int, int, int, int, int]:
         """Everything `accept` and `halve` depend on (a resumed run restores it)."""
-        return (self.pos, self.length, self.ceiling, self.wait, self.patience)
+        return (self.pos, self.length, self.ceiling, self.wait, self.patience, self.aligned)
 
     @state.setter
     def state(self, value) -> None:
-        self.pos, self.length, self.ceiling, self.wait, self.patience = (int(a) for a in value)
+        (self.pos, self.length, self.ceiling, self.wait, self.patience,
+         self.aligned) = (int(a) for a in value)
 
     def _power_of_two_at_most(self, units: float) -> int:
         units = min(max(units, 1.0), float(self.nominal))
@@ -136,9 +144,33 @@ class SlabSchedule:
             self.wait = max(self.wait - 1, 0)
             if self.wait:
                 length = min(length, self.ceiling // 2)
-        while length > 1 and self.pos % length:
+        while self.aligned and length > 1 and self.pos % length:
             length //= 2
         self.length = length
+
+    def cut(self, t: float) -> bool:
+        """End the current slab within CUT_RESOLUTION of its length before the time t (inside
+        it); False where t lies that close to its start already. Where the unit is coarser
+        than that, every length and position is refined by a power of two first (exactly: the
+        slab times stay the same floats). The ceiling of rejected lengths is kept: a cut is no
+        verdict on the length."""
+        t0, dt = self.current()
+        if not t0 + CUT_RESOLUTION * dt <= t < t0 + dt:  # (closer: the kink at its start)
+            return False
+        unit = self.T / self.total
+        refine = 0
+        while (unit / 2 ** refine > CUT_RESOLUTION * dt
+               and self.total << (refine + 1) <= MAX_UNITS):
+            refine += 1
+        if refine:
+            self.pos, self.length, self.total, self.nominal, self.ceiling = (
+                value << refine for value in (self.pos, self.length, self.total, self.nominal,
+                                              self.ceiling))
+        units = int(math.floor((t - t0) * self.total / self.T))
+        if not 1 <= units < min(self.length, self.total - self.pos):
+            return False
+        self.length, self.aligned = units, 0
+        return True
 
     def accept_each(self, factors) -> np.ndarray:
         """`accept_run` slab by slab (its states; what the vectorised path must equal)."""
@@ -158,7 +190,7 @@ class SlabSchedule:
         Vectorised where no rejected length is remembered (a chunk of hundreds of equal slabs
         of a linear scene took a millisecond slab by slab); the same states as `accept`."""
         factors = np.asarray(factors, dtype=float)
-        if self.ceiling or not len(factors):
+        if self.ceiling or not self.aligned or not len(factors):
             return self.accept_each(factors)
         k = np.arange(1, len(factors) + 1)
         length = self.length
@@ -174,7 +206,7 @@ class SlabSchedule:
         self.pos, self.length = int(pos[count - 1]), int(candidate[count - 1])
         states = np.empty((count, self.STATE_SIZE), dtype=np.int64)
         states[:, 0], states[:, 1] = pos[:count], candidate[:count]
-        states[:, 2:] = (0, self.wait, self.patience)
+        states[:, 2:] = (0, self.wait, self.patience, self.aligned)
         return states
 
     def halve(self, factor: float = 0.5) -> bool:

@@ -25,6 +25,7 @@ from fem_dual.integrate.controller import SlabSchedule, schedule_for, step_facto
 from fem_dual.integrate.estimate import ErrorWeights, output_request
 from fem_dual.integrate.judge import (GrowthBound, Verdict, check_resolution, judge, judged,
                                       volume_kept)
+from fem_dual.integrate.kinks import kink_time, predicted_kink_time
 from fem_dual.integrate.restart import Restart
 from fem_dual.integrate.result import RunResult, t_eval_output, unvouched_output
 from fem_dual.integrate.sinks import AcceptedSlab, Accumulator, ProgressSink, XdmfSink
@@ -36,7 +37,9 @@ from fem_dual.slab.values import VertexValues
 if TYPE_CHECKING:
     from fem_dual.integrate.simulation import Simulation
 
-__all__ = ["run_slabs"]
+__all__ = ["run_slabs", "BUDGET_WATCH"]
+
+BUDGET_WATCH = 8  # accepted slabs before the cost of the rest is predicted (--max-slabs)
 
 
 def run_slabs(sim: "Simulation", config: RunConfig, progress: bool = False,
@@ -52,12 +55,16 @@ def run_slabs(sim: "Simulation", config: RunConfig, progress: bool = False,
     schedule, state = run.schedule, run.state
     failure: Optional[SolveError] = None
     while failure is None and not schedule.done():
+        failure = run.over_budget()  # --rtol: the cost predicted from the slabs so far
+        if failure is not None:
+            break
         taken, failure = run.chunk()  # linear scenes: a chunk of equal slabs at once
         if taken or failure is not None:
             continue
         t0, dt = schedule.current()
         values, verdict = run.step(t0, dt)  # answer, companion, tangent; judged
-        if verdict.action == "retry" and schedule.halve(step_factor(verdict.err, run.order)):
+        if verdict.action == "cut" or (verdict.action == "retry" and
+                                       schedule.halve(step_factor(verdict.err, run.order))):
             run.rejected.append({"t0": t0, "dt": dt, "reason": verdict.reason})
             continue
         if verdict.action != "accept":
@@ -135,10 +142,17 @@ class _Run:
         vals = None
         try:
             self._resolved(dt)
+            cut = self._cut_at_kink(None, t0, dt)  # (the kink ahead, predicted)
+            if cut is not None:
+                return vals, cut
             vals = sim.solve_slab(z, t0, dt)
             suspicious = sim.verify()
             if suspicious:
                 raise SolveError(suspicious)
+            cut = self._cut_at_kink(vals, t0, dt)
+            if cut is not None:
+                self.timings["solve_s"] += time.perf_counter() - tic
+                return vals, cut
             t2 = time.perf_counter()
             algebraic = sim.algebraic_error(z, vals)
             # (no error carried in: none to propagate, the estimate is the local one)
@@ -156,6 +170,40 @@ class _Run:
             verdict = Verdict("retry", None, str(exc))
         self.timings["solve_s"] += time.perf_counter() - tic
         return vals, verdict
+
+    def _cut_at_kink(self, vals: Optional[VertexValues], t0: float,
+                     dt: float) -> Optional[Verdict]:
+        """A "cut" verdict where the force has a kink inside the slab and the schedule ends the
+        slab there (fem_dual.integrate.kinks: on the solved slab's values `vals`, or predicted
+        from the start state where they are None), else None. Collective."""
+        at = None
+        if self.comm.rank == 0:
+            scene = self.sim.scene
+            at = (predicted_kink_time(scene, self.state.z, t0, dt) if vals is None
+                  else kink_time(scene, t0, dt, vals))
+        at = bcast(self.comm, at)
+        if at is None or not self.schedule.cut(at):
+            return None
+        return Verdict("cut", None, f"the force has a kink (abs) at t = {at:.12g} inside the "
+                       "slab: it ends there")
+
+    def over_budget(self) -> Optional[SolveError]:
+        """With --rtol, once BUDGET_WATCH slabs are accepted: the failure that stops a run
+        whose remaining slabs, at the longest of the last ones, would exceed --max-slabs; None
+        while it stays within. The same on every rank (from the accepted lengths)."""
+        config, lengths = self.config, self.state.lengths
+        if config.rtol is None or len(lengths) < BUDGET_WATCH:
+            return None
+        t0, dt = self.schedule.current()
+        typical = max(max(lengths[-BUDGET_WATCH:]), dt)
+        predicted = len(lengths) + int(np.ceil((config.T - t0) / typical))
+        if predicted <= config.max_slabs:
+            return None
+        return SolveError(
+            f"rtol={config.rtol:g} would take at least {predicted:,} slabs of {typical:.3g} to "
+            f"reach T = {config.T:g}, beyond the budget of {config.max_slabs:,} "
+            f"(--max-slabs); stopped at t = {t0:.6g} after {len(lengths)} slabs: loosen "
+            "--rtol, shorten --T, or raise --max-slabs", slab=len(lengths))
 
     def refusal(self, verdict: Verdict, t0: float, dt: float) -> SolveError:
         """The failure that ends the run at a slab that is neither accepted nor retried."""
@@ -283,7 +331,7 @@ class _Run:
         if scene.linear:
             record["weighting"] = scene.weighting()
         record["assembly"] = sim.backend.assembly
-        record["base"] = config.base_state
+        record["base"], record["base_reason"] = config.base_choice
         record["compiled_loops"] = sim.backend.compiled_loops()
         record["compiled_loops_unavailable"] = native.reason()  # why none ran, or None
         if scene.linear:

@@ -32,7 +32,7 @@ class AcceptedSlab:
     dt: float
     values: VertexValues
     estimate: SlabEstimate
-    schedule: tuple = (0, 0, 0, 0, 0)
+    schedule: tuple = (0, 0, 0, 0, 0, 1)
     scales: tuple = (0.0, 0.0)
 
 

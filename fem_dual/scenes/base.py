@@ -307,6 +307,8 @@ class Scene(abc.ABC):
     size_field: ClassVar[Optional[str]] = None  # the parameter that sets n (a column's links)
     min_dofs: ClassVar[int] = 1
     max_dofs: ClassVar[int] = MAX_DOFS  # a scene may lower it; MAX_DOFS bounds every scene
+    whole_fields: ClassVar[Tuple[str, ...]] = ()  # parameters that are whole numbers
+    continuum: ClassVar[bool] = False  # a spatial discretisation: start state from fields
 
     # -- construction -------------------------------------------------------------------------
     @classmethod
@@ -332,7 +334,8 @@ class Scene(abc.ABC):
         kind = {key: known[key].metadata.get("kind", "float") for key in params}
         values: Dict[str, object] = {key: parse_number(key, text) for key, text in params.items()
                                      if kind[key] == "float"}
-        for size in {"links", "dofs", cls.size_field} - {None}:  # sizes: n depends on them
+        sizes = {"links", "dofs", cls.size_field, *cls.whole_fields} - {None}
+        for size in sizes:  # whole numbers (sizes: n depends on them)
             if size in values:
                 values[size] = _whole(size, values[size])
         n = cls.check_size(cls(**values).n)  # scalar fields first: n may depend on them
@@ -381,6 +384,11 @@ class Scene(abc.ABC):
             raise InputError(f"{name}={shown} is too large (at most {cls.max_dofs} for scene "
                              f"{cls.name})")
         return n
+
+    def kinks(self, x: np.ndarray) -> Optional[np.ndarray]:
+        """(points, kinks): where the force is not smooth: values whose sign changes mark a jump
+        of its derivative (fem_dual.integrate.kinks ends slabs there); None for a smooth force."""
+        return None
 
     def checked(self) -> "Scene":
         """This scene, validated, for a scene built by `from_params` and one handed over as an

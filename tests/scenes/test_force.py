@@ -45,7 +45,7 @@ def test_dense_output_converges_and_stays_near_the_vertex_error(degree, cells):
     dense, vertex = [], []
     for c in cells:
         r = run(RunConfig.create("force", {"F": CURL2D, "k": "1"}, T=2, cells=c, degree=degree,
-                                 x0="1,1", t_eval=times))
+                                 x0="1,1", t_eval=times, base="start"))
         e = r.t_eval["error"]
         dense.append(max(e["x_max"], e["v_max"]))
         vertex.append(max(r.error["x_max"], r.error["v_max"]))

@@ -1,0 +1,42 @@
+"""--rtol on a motion far faster than its horizon: the cost is predicted from the first slabs and
+a run beyond --max-slabs stops at once with the figure (exit 3), keeping what it computed."""
+import json
+
+import numpy as np
+import pytest
+
+from fem_dual import RunConfig, SolveError, run
+from fem_dual.cli import main
+from fem_dual.integrate.loop import BUDGET_WATCH
+
+FAST = ["run", "force", "--F", "-100000000.0*x", "--x0", "1", "--T", "2", "--rtol", "1e-6"]
+
+
+def test_a_run_beyond_the_budget_stops_with_the_figure(capsys):
+    """omega = 1e4 over T = 2 (3,183 periods) takes about 8,000 slabs at 1e-6."""
+    assert main(FAST + ["--json"]) == 3
+    captured = capsys.readouterr()
+    assert captured.err.count("\n") == 1
+    assert "would take at least 8,192 slabs" in captured.err and "--max-slabs" in captured.err
+    data = json.loads(captured.out)
+    assert data["status"] == "failed" and len(data["slab_lengths"]) == BUDGET_WATCH
+    assert np.isfinite(data["x"]).all()
+
+
+def test_the_budget_is_the_users_to_raise():
+    """(curl3d at 1e-10 on degree 2 takes 30 slabs.)"""
+    with pytest.raises(SolveError, match="beyond the budget of 10 "):
+        run(RunConfig.create("curl3d", T=8, rtol=1e-10, cells=4, degree=2, max_slabs=10))
+    r = run(RunConfig.create("curl3d", T=8, rtol=1e-10, cells=4, degree=2, max_slabs=100))
+    assert r.status == "ok" and 10 < len(r.slab_lengths) <= 100
+
+
+def test_fixed_slabs_have_no_budget():
+    r = run(RunConfig.create("curl3d", T=1, slabs=20, cells=4, degree=3, max_slabs=1))
+    assert r.status == "ok" and len(r.slab_lengths) == 20
+
+
+@pytest.mark.parametrize("value", ["0", "1.5", "x", "-3"])
+def test_bad_budget_is_refused(value, capsys):
+    assert main(FAST + ["--max-slabs", value]) == 2
+    assert f"max-slabs='{value}'" in capsys.readouterr().err
