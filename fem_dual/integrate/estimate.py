@@ -168,8 +168,9 @@ def estimate_slabs(vals: VertexValues, companion: VertexValues, algebraic: Optio
     retried shorter, as one whose local error does). In compiled code where it is available
     (fem_dual.native's `estimate`, `compiled`), for finite values and positive weights; the
     numpy below judges the rest."""
+    # (the compiled loop judges a damped part per unit of time: runs with one take numpy)
     done = _compiled_estimates(vals, companion, algebraic, psi, lost, weights, dt,
-                               T) if compiled else None
+                               T) if compiled and lost is None else None
     if done is not None:
         local, glob, scales, floor, err_local, err_global = done
         finite = np.ones(len(scales), dtype=bool)
@@ -183,9 +184,10 @@ def estimate_slabs(vals: VertexValues, companion: VertexValues, algebraic: Optio
     if algebraic is not None:  # the answer's own Newton error (the companion's cancels it)
         local += algebraic
     local *= ESTIMATE_SAFETY
+    damped = None
     if lost is not None:  # damped by the zero base: gone from the answer after the start
-        local[:, 1:] += lost[:, None, :]
-    glob = local if psi is None else local + psi
+        damped = np.zeros_like(local)
+        damped[:, 1:] = lost[:, None, :]
     scales = weights.running(vals.x, vals.v)
     # local errors at the round-off floor are not resolved: counted as such they would grow per
     # unit of time as slabs shrink and drive the lengths down to the minimum
@@ -194,11 +196,19 @@ def estimate_slabs(vals: VertexValues, companion: VertexValues, algebraic: Optio
         # the largest |error| of x's and of v's (slabs, 2), NaN where one is NaN; less the
         # floor, one number per part, that is the largest of max(|l| - floor, 0)
         peak_local = weights.peaks(local)
-        peak_glob = peak_local if psi is None else weights.peaks(glob)
-        count = len(scales)
-        both = weights.weigh(np.concatenate([np.maximum(peak_local - floor, 0.0), peak_glob]),
-                             np.concatenate([scales, scales]))  # (weighted in one pass)
-        err_local, err_global = both[:count] / (np.asarray(dt) / T), both[count:]
+        err_local = weights.weigh(np.maximum(peak_local - floor, 0.0), scales) / (
+            np.asarray(dt) / T)
+        if damped is not None:
+            # a damped mode is lost once, whatever the slab's length: judged against the
+            # tolerance itself, not per unit of time (which would shorten the slabs towards
+            # resolving every mode the start state touches)
+            peak_damped = weights.peaks(damped)
+            err_local = np.maximum(err_local, weights.weigh(np.maximum(peak_damped - floor, 0.0),
+                                                            scales))
+            local = local + damped
+        glob = local if psi is None else local + psi
+        peak_glob = weights.peaks(glob)
+        err_global = weights.weigh(peak_glob, scales)
         finite = np.isfinite(peak_local).all(axis=1) & np.isfinite(peak_glob).all(axis=1)
         est = Estimates(local, glob, scales, floor, err_local, err_global, finite)
         return est if output is None else _with_output(vals, weights, dt, output, est)

@@ -341,3 +341,20 @@ def test_the_stiff_spring_keeps_its_predictor_base_and_one_slab():
     r = run(RunConfig.create("curl3d", {"K": "0,0,0,0,0,0,0,0,1e6"}, x0="0.3,0.2,-0.06e-6",
                              cells=16, degree=2))
     assert r.solver["base"] == "predictor" and len(r.slab_lengths) == 1
+
+
+@pytest.mark.parametrize("fast, rtol, most", [("1e-9", 1e-6, 16), ("1e-6", 1e-4, None)])
+def test_a_damped_mode_is_judged_once(fast, rtol, most):
+    """The zero base damps a mode the slabs do not resolve; what it takes away is lost once,
+    whatever the slab's length: within the tolerance it is accepted (a fast mode of amplitude
+    1e-9 took 2,048 slabs when it was judged per unit of time, now 5), beyond it the slabs
+    resolve the mode (amplitude 1e-6: its speed 1e-3 exceeds 1e-4)."""
+    r = run(RunConfig.create("linear", {"dofs": "2", "K": "1,0,0,1000000"}, T=10,
+                             x0=f"1,{fast}", rtol=rtol))
+    assert r.solver["base"] == "zero" and r.status == "ok"
+    assert _actual(r) <= r.error_estimate <= 10 * rtol * max(r.tolerance["scale_x"],
+                                                              r.tolerance["scale_v"])
+    if most is not None:
+        assert len(r.slab_lengths) <= most
+    else:
+        assert len(r.slab_lengths) > 1000
