@@ -187,26 +187,36 @@ class SlabSchedule:
         """`accept` slab after slab with the step factors `factors`, stopping after the first
         slab whose factor changes the length; returns the state after each accepted slab
         ((slabs, STATE_SIZE) integers).
-        Vectorised where no rejected length is remembered (a chunk of hundreds of equal slabs
-        of a linear scene took a millisecond slab by slab); the same states as `accept`."""
+        Vectorised (a chunk of hundreds of equal slabs of a linear scene took a millisecond
+        slab by slab, 2.5 ms of a 10 ms run); the same states as `accept`."""
         factors = np.asarray(factors, dtype=float)
-        if self.ceiling or not self.aligned or not len(factors):
+        if not self.aligned or not len(factors):
             return self.accept_each(factors)
+        if self.ceiling and self.length >= self.ceiling:  # the first slab clears the ceiling
+            length = self.length
+            first = self.accept_each(factors[:1])
+            if self.length != length or len(factors) == 1:
+                return first
+            return np.vstack([first, self.accept_run(factors[1:])])
         k = np.arange(1, len(factors) + 1)
         length = self.length
+        wait = np.maximum(self.wait - k, 0) if self.ceiling else np.full(len(k), self.wait)
         pos = np.minimum(self.pos + k * length, self.total)  # (the last slab may be short)
         scaled = length * (factors if self.shrinks else np.maximum(factors, 1.0))
         with np.errstate(divide="ignore", invalid="ignore"):
             units = np.clip(np.nan_to_num(scaled, nan=1.0), 1.0, float(self.nominal))
             candidate = np.left_shift(1, np.floor(np.log2(units)).astype(np.int64))
+        if self.ceiling:  # below a rejected length while the wait lasts
+            candidate = np.where(wait > 0, np.minimum(candidate, self.ceiling // 2), candidate)
         lowest = pos & -pos  # the largest power of two dividing pos (pos > 0)
         candidate = np.maximum(np.minimum(candidate, np.where(pos > 0, lowest, candidate)), 1)
         changed = np.flatnonzero(candidate != length)
         count = int(changed[0]) + 1 if len(changed) else len(factors)
         self.pos, self.length = int(pos[count - 1]), int(candidate[count - 1])
+        self.wait = int(wait[count - 1])
         states = np.empty((count, self.STATE_SIZE), dtype=np.int64)
-        states[:, 0], states[:, 1] = pos[:count], candidate[:count]
-        states[:, 2:] = (0, self.wait, self.patience, self.aligned)
+        states[:, 0], states[:, 1], states[:, 3] = pos[:count], candidate[:count], wait[:count]
+        states[:, 2], states[:, 4], states[:, 5] = self.ceiling, self.patience, self.aligned
         return states
 
     def halve(self, factor: float = 0.5) -> bool:

@@ -93,7 +93,7 @@ def test_accept_run_gives_the_states_of_accept(shrinks):
     import copy
 
     rng = np.random.default_rng(7)
-    for trial in range(300):
+    for trial in range(1500):
         schedule = SlabSchedule(10.0, int(rng.integers(1, 9)), int(rng.integers(0, 7)),
                                 first=float(rng.uniform(0.01, 1.0)), shrinks=shrinks)
         for _ in range(int(rng.integers(0, 5))):  # somewhere along the run
@@ -101,7 +101,11 @@ def test_accept_run_gives_the_states_of_accept(shrinks):
                 break
             schedule.accept(float(rng.choice([0.3, 1.0, 1.5, 2.5, 8.0])))
         if trial % 3 == 0 and schedule.length > 1:
-            schedule.halve()  # a remembered length: the slab-by-slab path
+            schedule.halve()  # a remembered length, kept below while the wait lasts ...
+            for _ in range(int(rng.integers(0, 8))):  # ... then reached again, and cleared
+                if schedule.done():
+                    break
+                schedule.accept(float(rng.choice([1.0, 2.0, 8.0])))
         remaining = (schedule.total - schedule.pos) // max(schedule.length, 1)
         if schedule.done() or remaining < 1:
             continue
