@@ -12,8 +12,8 @@ import ufl
 from dolfinx import cpp as _cpp
 from dolfinx import fem
 
-__all__ = ["quiet_jit_logging", "CellPointEvaluator", "CompiledExpression", "compile_expression",
-           "compile_form",
+__all__ = ["function_space", "quiet_jit_logging", "CellPointEvaluator", "CompiledExpression",
+           "compile_expression", "compile_form",
            "vector_space", "vector_space_dg1", "constant", "destroy_petsc",
            "release_function_vector"]
 
@@ -45,10 +45,17 @@ def quiet_jit_logging() -> Iterator[None]:
             log.filters[:] = filters
 
 
+def function_space(msh, element) -> fem.FunctionSpace:
+    """fem.FunctionSpace, its element compiled quietly (FFCx sets its logger's level from its
+    options on every JIT call: a space built outside `quiet_jit_logging` left it changed)."""
+    with quiet_jit_logging():
+        return fem.FunctionSpace(msh, element)
+
+
 def vector_space(msh, degree: int, dim: int, family: str = "Lagrange") -> fem.FunctionSpace:
     """One blocked Lagrange (or "DG") space of `dim` components (0.5.2: ufl.VectorElement).
     On an interval, the first two dofs of a cell sit at its reference points 0 and 1."""
-    return fem.FunctionSpace(msh, ufl.VectorElement(family, msh.ufl_cell(), degree, dim=dim))
+    return function_space(msh, ufl.VectorElement(family, msh.ufl_cell(), degree, dim=dim))
 
 
 def vector_space_dg1(msh, dim: int) -> fem.FunctionSpace:

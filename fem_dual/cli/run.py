@@ -111,8 +111,10 @@ def summary(result: RunResult) -> str:
                   f"  error   estimated x_max={est['x_max']:.3e}  v_max={est['v_max']:.3e}  "
                   f"(no reference needed)",
                   _reference_line(e),
-                  f"  H_d     min={h['min']:.6g}  max={h['max']:.6g}  "
-                  f"drift per slab={h['drift']:.3e}"]
+                  f"  H_d     min={h['min']:.6g}  max={h['max']:.6g}  " + (
+                      f"drift per slab={h['drift']:.3e}"
+                      if result.solver.get("base") in ("start", "zero")
+                      else "(not conserved: the base state moves within a slab)")]
     lines.append(f"  time    total {tm['total_s']:.3f} s (compile {tm['compile_s']:.3f} s, "
                  f"solve {tm['solve_s']:.3f} s, {result.solver['slab_solves']} slab solves)")
     if result.output_files:

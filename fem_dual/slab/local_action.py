@@ -25,10 +25,9 @@ from typing import Optional, Tuple
 import basix
 import numpy as np
 import ufl
-from dolfinx import fem
 
 from fem_dual import native
-from fem_dual.compat import CellPointEvaluator
+from fem_dual.compat import CellPointEvaluator, function_space
 from fem_dual.native.band import MAX_BASIS_PAIRS, Band
 from fem_dual.native.tangents import Tangents
 from fem_dual.quiet import _quiet, quiet_numpy  # noqa: F401 (quiet_numpy: re-exported)
@@ -142,7 +141,7 @@ class LocalAction:
         msh = p.mesh.msh
         cell_count = len(self.cells)
         # basis values and derivatives d/ds at the points of every cell: (cells, q, 2, nd)
-        scalar = fem.FunctionSpace(msh, ("Lagrange", p.degree))
+        scalar = function_space(msh, ("Lagrange", p.degree))
         dofs = p.W.dofmap.list.array.reshape(cell_count, nd)
         if not np.array_equal(scalar.dofmap.list.array.reshape(cell_count, nd), dofs):
             raise RuntimeError("the scalar space's dofmap differs from the dual space's blocks")

@@ -22,7 +22,8 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from fem_dual.slab.base_state import RK4_STEPS_PER_NODE, predictor
-from fem_dual.compat import constant, release_function_vector, vector_space
+from fem_dual.compat import (constant, function_space, release_function_vector,
+                             vector_space)
 from fem_dual.slab.pointwise_dtp import PointwiseDtP
 from fem_dual.scenes.base import Scene
 from fem_dual.forms.predual import boundary_term, dual_hamiltonian, predual_lagrangian
@@ -96,7 +97,7 @@ class SlabProblem:
             self.xbar, self.vbar = fem.Function(space), fem.Function(space)
             # node coordinates of the scalar space: the blocked space's nodes, in its order
             # (0.5.2 cannot tabulate them for a one-component VectorElement)
-            nodes = fem.FunctionSpace(msh, ("Lagrange", degree + 1))
+            nodes = function_space(msh, ("Lagrange", degree + 1))
             self._base_times = nodes.tabulate_dof_coordinates()[:, 0]
         else:
             self.xbar, self.vbar = constant(msh, zero), constant(msh, zero)
@@ -179,10 +180,10 @@ class SlabProblem:
             # second variation of the reduced action.
             msh = self.mesh.msh
             cell = msh.ufl_cell()
-            Qx = fem.FunctionSpace(msh, ufl.VectorElement("Quadrature", cell, qdeg, dim=n,
-                                                          quad_scheme="default"))
-            Qt = fem.FunctionSpace(msh, ufl.TensorElement("Quadrature", cell, qdeg, shape=(n, n),
-                                                          quad_scheme="default"))
+            Qx = function_space(msh, ufl.VectorElement("Quadrature", cell, qdeg, dim=n,
+                                                       quad_scheme="default"))
+            Qt = function_space(msh, ufl.TensorElement("Quadrature", cell, qdeg, shape=(n, n),
+                                                       quad_scheme="default"))
             points = basix.make_quadrature(basix.CellType.interval, qdeg)[0]
             self.pointwise = PointwiseDtP(Qx, points, self.position_equations, self.time, Qt)
             X, Ginv = self.pointwise.X, self.pointwise.Ginv
@@ -263,7 +264,7 @@ class SlabProblem:
             return
         if self._taken is None or self._taken[0] is not other:
             cells = self.mesh.msh.topology.index_map(1).size_local
-            scalar = fem.FunctionSpace(self.mesh.msh, ("Lagrange", other.degree))
+            scalar = function_space(self.mesh.msh, ("Lagrange", other.degree))
             points = self.W.element.interpolation_points()
             table = scalar.element.basix_element.tabulate(0, points).reshape(len(points), -1)
             self._taken = (other, table, other.W.dofmap.list.array.reshape(cells, -1),

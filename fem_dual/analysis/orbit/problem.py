@@ -10,7 +10,8 @@ from dolfinx import fem
 from mpi4py import MPI
 from scipy import sparse
 
-from fem_dual.compat import CellPointEvaluator, compile_form, constant, vector_space
+from fem_dual.compat import (CellPointEvaluator, compile_form, constant, function_space,
+                             vector_space)
 from fem_dual.errors import InputError
 from fem_dual.analysis.orbit_input import Energy
 from fem_dual.slab.problem import SlabProblem
@@ -43,7 +44,7 @@ class OrbitProblem(SlabProblem):
         base = vector_space(msh, degree + 1, n)
         self.xbar, self.vbar = fem.Function(base), fem.Function(base)
         self.xb, self.vb, self.Zbar = self.xbar, self.vbar, None  # the base state in the UFL
-        nodes = fem.FunctionSpace(msh, ("Lagrange", degree + 1))
+        nodes = function_space(msh, ("Lagrange", degree + 1))
         self.base_nodes = nodes.tabulate_dof_coordinates()[:, 0]  # s of the base state's nodes
         w = self.w
         self.xi = ufl.as_vector([w[i] for i in range(n)])
@@ -109,7 +110,7 @@ class OrbitProblem(SlabProblem):
 def _periodic_merge(W: fem.FunctionSpace, degree: int) -> sparse.csr_matrix:
     """P (dofs x periodic dofs): the dofs of the node at s = 1 are those of the node at s = 0."""
     msh = W.mesh
-    s = fem.FunctionSpace(msh, ("Lagrange", degree)).tabulate_dof_coordinates()[:, 0]
+    s = function_space(msh, ("Lagrange", degree)).tabulate_dof_coordinates()[:, 0]
     bs = W.dofmap.index_map_bs
     first, last = int(np.argmin(s)), int(np.argmax(s))
     nodes = len(s)
