@@ -36,8 +36,9 @@ def bench(args, params, comm: MPI.Comm) -> int:
     for degree in degrees:  # every configuration is valid before anything runs
         for n in cells:
             for k in slabs:
-                RunConfig.create(base.scene, T=base.T, cells=n, degree=degree, slabs=k)
-    rtols = [RunConfig.create(base.scene, T=base.T, rtol=item).rtol
+                RunConfig.create(base.scene, T=base.T, cells=n, degree=degree, slabs=k,
+                                 x0=base.x0, v0=base.v0)
+    rtols = [RunConfig.create(base.scene, T=base.T, rtol=item, x0=base.x0, v0=base.v0).rtol
              for item in args.rtols.split(",") if args.rtols.strip()]
     out = check_output_dir_on_root(comm, args.out)
     skipped: List[str] = []

@@ -151,6 +151,15 @@ def test_progress_bar_goes_to_stderr_and_never_with_json(capsys, monkeypatch):
 
 
 @pytest.mark.serial
+def test_bench_takes_a_user_force_with_its_start_state(tmp_path, capsys):
+    assert main(["bench", "force", "--param", "F=-x - 2*x*y, -y - x**2 + y**2", "--x0",
+                 "0.3,0.1", "--T", "1", "--cells", "2", "--degrees", "3", "--repeats", "1",
+                 "--rtols", "1e-6", "--out", str(tmp_path), "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)["rows"]
+    adaptive = [r for r in rows if r["method"] == "fem-dual-rtol"]
+    assert len(adaptive) == 1 and adaptive[0]["max_error"] <= adaptive[0]["estimate"]
+
+
 def test_bench_runs_on_a_tiny_configuration(tmp_path, capsys):
     import csv
 
