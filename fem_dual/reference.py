@@ -174,39 +174,49 @@ class IVPFlow:
         KINK_STEP without events, so that the kink just crossed does not stop it again."""
         from scipy.integrate import solve_ivp  # 0.3 s of imports that linear scenes skip
 
-        done_t, done_z, quiet = [], [], False
+        done_t, done_z, quiet, was_quiet = [], [], False, False
         while True:
+            # a start on a kink: off it quietly first, as after a crossing (then the kinks the
+            # motion still sits on are left out of the events)
+            quiet = quiet or (not was_quiet and self._on_kink(z0))
             end = min(t0 + KINK_STEP * max(abs(t[-1]), 1.0), t[-1]) if quiet else t[-1]
             want = t[(t > t0) & (t <= end)]
             grid = want if want.size and want[-1] == end else np.append(want, end)
             sol = solve_ivp(self._rhs if quiet else self._rhs_on(z0), (t0, end), z0,
                             method="DOP853", t_eval=grid,
                             rtol=self.rtol, atol=self.atol,
-                            events=None if quiet else self._events())
+                            events=None if quiet else self._events(z0))
             y = np.asarray(sol.y, dtype=float).reshape(2 * self.n, -1)  # (none may be reached)
             reached = np.asarray(sol.t, dtype=float)
             asked = np.isin(reached, want)  # (solve_ivp returns the times asked, exactly)
             done_t.append(reached[asked]), done_z.append(y.T[asked])
             if sol.status == 1:  # at a kink: on from there, quietly for a moment
                 hit = next(i for i, e in enumerate(sol.t_events) if len(e))
-                t0, z0, quiet = float(sol.t_events[hit][0]), sol.y_events[hit][0].copy(), True
+                t0, z0 = float(sol.t_events[hit][0]), sol.y_events[hit][0].copy()
+                quiet, was_quiet = True, False
                 continue
             if sol.status != 0 or end >= t[-1]:  # a failure, or the end
                 last = y[:, -1] if sol.status == 0 else z0
                 return np.concatenate(done_t), np.concatenate(done_z), sol.status, last
-            t0, z0, quiet = end, y[:, -1], False
+            t0, z0, quiet, was_quiet = end, y[:, -1], False, quiet
 
-    def _events(self):
-        """Terminal events at the kinks (None without kinks)."""
+    def _on_kink(self, z0: np.ndarray) -> bool:
+        """Whether z0 sits exactly on a kink (an argument of abs is 0 there)."""
+        return self.kinks is not None and not np.all(self.kinks(z0[None, :self.n])[0])
+
+    def _events(self, z0: np.ndarray):
+        """Terminal events at the kinks (None without kinks), but not at those the motion sits
+        on at z0: scipy counts a zero as a crossing, so a motion that stays on a kink (at rest
+        in it) would stop again at every step."""
         if self.kinks is None:
             return None
         events = []
-        for k in range(self.kinks(self.z[None, :self.n]).shape[1]):
+        for k in np.flatnonzero(self.kinks(z0[None, :self.n])[0]):
             def event(_t, z, k=k):
                 return float(self.kinks(z[None, :self.n])[0, k])
             event.terminal = True
             events.append(event)
-        return events
+        return events or None
 
     def __call__(self, t: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         t = np.asarray(t, dtype=float)

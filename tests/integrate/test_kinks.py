@@ -89,3 +89,20 @@ def test_a_cut_ends_the_slab_before_the_time_and_keeps_exact_positions():
     restored.state = state
     assert restored.state == state
     assert not SlabSchedule(T=6.0, slabs=4).cut(0.0)  # (a kink at the slab's start: no cut)
+
+
+def test_a_start_on_the_kink():
+    """From x = 0: moving, the reference stops at the next crossings as the exact motion does;
+    at rest in the equilibrium on the kink it stays there (scipy counts a zero as a crossing:
+    a motion sitting on a kink stopped the reference at every step)."""
+    from fem_dual.inputs import scene_of
+
+    scene = scene_of("force", {"F": KINKED})
+    flow = scene.reference(np.array([0.0]), np.array([1.0]))
+    t = np.linspace(0.01, 3, 50)
+    x, v = flow(t)
+    shifted = exact(t + np.pi / 2)  # (x = 0, v = 1 is where the motion from -1 first crosses)
+    assert np.abs(x[:, 0] - shifted[0]).max() < 1e-11
+    assert np.abs(v[:, 0] - shifted[1]).max() < 1e-11
+    r = run(RunConfig.create("force", {"F": "-x - abs(x)"}, x0="0", v0="0", T=10, rtol=1e-8))
+    assert r.status == "ok" and not np.any(r.x) and r.error["x_max"] == 0.0
