@@ -62,6 +62,8 @@ def schedule_for(config: RunConfig, cells: int, rate: float) -> SlabSchedule:
 
 
 CUT_RESOLUTION = 1e-9  # a cut slab ends this fraction of its length before the cut, at most
+KINK_AT_START = 1e-6  # a kink this close to a slab's start (fraction of its length) is not cut:
+# it is the one the previous slab was cut at, located again a little later
 MAX_UNITS = 2 ** 52  # positions stay exact in float64 (t0 = pos T / total): refinement stops
 FIRST_PATIENCE = 4  # slabs a rejected length is not tried again, after its first rejection
 MAX_PATIENCE = 256  # ... doubled after each repeated rejection up to this
@@ -97,7 +99,7 @@ class SlabSchedule:
             accepted close to the tolerance made two half slabs every few dozen slabs).
     """
 
-    STATE_SIZE = 6  # len(state)
+    STATE_SIZE = 7  # len(state)
 
     def __init__(self, T: float, slabs: int, max_halvings: int = 0, first: float = 1.0,
                  shrinks: bool = True):
@@ -110,16 +112,18 @@ class SlabSchedule:
         self.wait = 0  # accepted slabs before the ceiling may be tried again
         self.patience = 0  # the wait after the next rejection at the ceiling (halved)
         self.aligned = 1  # 0 after a cut: lengths no longer divide their start positions
+        self.resume = 0  # after a cut: the length the cut slab had, taken up again after it
 
     @property
     def state(self) -> Tuple[int, int, int, int, int, int]:
         """Everything `accept` and `halve` depend on (a resumed run restores it)."""
-        return (self.pos, self.length, self.ceiling, self.wait, self.patience, self.aligned)
+        return (self.pos, self.length, self.ceiling, self.wait, self.patience, self.aligned,
+                self.resume)
 
     @state.setter
     def state(self, value) -> None:
-        (self.pos, self.length, self.ceiling, self.wait, self.patience,
-         self.aligned) = (int(a) for a in value)
+        (self.pos, self.length, self.ceiling, self.wait, self.patience, self.aligned,
+         self.resume) = (int(a) for a in value)
 
     def _power_of_two_at_most(self, units: float) -> int:
         units = min(max(units, 1.0), float(self.nominal))
@@ -144,18 +148,21 @@ class SlabSchedule:
             self.wait = max(self.wait - 1, 0)
             if self.wait:
                 length = min(length, self.ceiling // 2)
+        if self.resume:  # the slab was cut at a kink: no verdict on the length it had
+            length, self.resume = max(length, self.resume), 0
         while self.aligned and length > 1 and self.pos % length:
             length //= 2
         self.length = length
 
     def cut(self, t: float) -> bool:
         """End the current slab within CUT_RESOLUTION of its length before the time t (inside
-        it); False where t lies that close to its start already. Where the unit is coarser
-        than that, every length and position is refined by a power of two first (exactly: the
-        slab times stay the same floats). The ceiling of rejected lengths is kept: a cut is no
-        verdict on the length."""
+        it); False where t lies within KINK_AT_START of its start. Where the unit is coarser
+        than CUT_RESOLUTION, every length and position is refined by a power of two first
+        (exactly: the slab times stay the same floats). A cut is no verdict on the length: the
+        ceiling of rejected lengths is kept, and the slab after the cut one takes up the length
+        the cut slab had (`resume`)."""
         t0, dt = self.current()
-        if not t0 + CUT_RESOLUTION * dt <= t < t0 + dt:  # (closer: the kink at its start)
+        if not t0 + KINK_AT_START * dt <= t < t0 + dt:  # (closer: the kink at its start)
             return False
         unit = self.T / self.total
         refine = 0
@@ -163,12 +170,13 @@ class SlabSchedule:
                and self.total << (refine + 1) <= MAX_UNITS):
             refine += 1
         if refine:
-            self.pos, self.length, self.total, self.nominal, self.ceiling = (
+            self.pos, self.length, self.total, self.nominal, self.ceiling, self.resume = (
                 value << refine for value in (self.pos, self.length, self.total, self.nominal,
-                                              self.ceiling))
+                                              self.ceiling, self.resume))
         units = int(math.floor((t - t0) * self.total / self.T))
         if not 1 <= units < min(self.length, self.total - self.pos):
             return False
+        self.resume = max(self.resume, self.length)
         self.length, self.aligned = units, 0
         return True
 
@@ -217,6 +225,7 @@ class SlabSchedule:
         states = np.empty((count, self.STATE_SIZE), dtype=np.int64)
         states[:, 0], states[:, 1], states[:, 3] = pos[:count], candidate[:count], wait[:count]
         states[:, 2], states[:, 4], states[:, 5] = self.ceiling, self.patience, self.aligned
+        states[:, 6] = self.resume
         return states
 
     def halve(self, factor: float = 0.5) -> bool:

@@ -78,7 +78,7 @@ def test_a_cut_ends_the_slab_before_the_time_and_keeps_exact_positions():
     t0_cut, dt_cut = schedule.current()
     assert t0_cut == t0 and 0.3 * dt * (1 - 1e-8) <= dt_cut <= 0.3 * dt
     state = schedule.state
-    assert len(state) == SlabSchedule.STATE_SIZE == 6
+    assert len(state) == SlabSchedule.STATE_SIZE == 7
     schedule.accept(1.0)
     total = dt_cut
     while not schedule.done():
@@ -106,3 +106,13 @@ def test_a_start_on_the_kink():
     assert np.abs(v[:, 0] - shifted[1]).max() < 1e-11
     r = run(RunConfig.create("force", {"F": "-x - abs(x)"}, x0="0", v0="0", T=10, rtol=1e-8))
     assert r.status == "ok" and not np.any(r.x) and r.error["x_max"] == 0.0
+
+
+def test_two_kinks_in_two_dimensions_and_no_slab_at_a_kink_found_again():
+    """After a cut the next slab starts a hair before the kink and finds it again: it is not
+    cut again (KINK_AT_START), and it takes up the length the cut slab had (a cut at the first
+    slab once left slabs of 1e-12 growing 4x a slab, and the cost prediction refused the run)."""
+    F = "-x - 3*abs(y) + 0.5*y, -y - 2*abs(x)"
+    r = run(RunConfig.create("force", {"F": F}, x0="0.5,-0.3", T=5, rtol=1e-8))
+    assert r.status == "ok" and min(r.slab_lengths) > 1e-3, r.slab_lengths
+    assert max(r.error["x_max"], r.error["v_max"]) <= r.error_estimate
