@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any, Mapping, Tuple
 
 import numpy as np
@@ -69,10 +70,10 @@ class ForceExpression:
             return np.array([_evaluate(node, backend) for node in self._components],
                             dtype=np.float64)
 
-    @property
+    @functools.cached_property
     def kinks(self) -> Tuple[_Node, ...]:
         """The arguments of its non-smooth functions (abs): where one changes sign, the force's
-        derivative jumps."""
+        derivative jumps. (Found once: every event check of the reference asks.)"""
         found, stack = [], list(self._components)
         while stack:
             node = stack.pop()

@@ -25,13 +25,13 @@ from fem_dual.integrate.controller import SlabSchedule, schedule_for, step_facto
 from fem_dual.integrate.estimate import ErrorWeights, output_request
 from fem_dual.integrate.judge import (GrowthBound, Verdict, check_resolution, judge, judged,
                                       volume_kept)
-from fem_dual.integrate.kinks import kink_time, predicted_kink_time
+from fem_dual.integrate.kinks import PREDICTION_STEPS, kink_time, predicted_kink_time
 from fem_dual.integrate.restart import Restart
 from fem_dual.integrate.result import RunResult, t_eval_output, unvouched_output
 from fem_dual.integrate.sinks import AcceptedSlab, Accumulator, ProgressSink, XdmfSink
 from fem_dual.integrate.state import LoopState
 from fem_dual.mpi import allreduce, bcast, input_on_root, on_root
-from fem_dual.slab.base_state import motion_rate
+from fem_dual.slab.base_state import FlowPredictor, motion_rate
 from fem_dual.slab.values import VertexValues
 
 if TYPE_CHECKING:
@@ -110,6 +110,10 @@ class _Run:
         self.schedule = schedule_for(config, sim.cells,
                                      start_rate if self.rate is None else self.rate)
         self.order = 2 * config.degree  # the local error per unit of time goes like dt^(2p)
+        # a force with kinks (abs): slabs end at them, predicted by classical Runge-Kutta
+        self.kinked = not scene.linear and scene.kinks(config.x0[None]) is not None
+        self.kink_flow = FlowPredictor(scene, PREDICTION_STEPS) if self.kinked and root \
+            else None
         self.state = LoopState(config)
         if resume:
             self.state.resume(self.comm, restart, self.acc, self.weights, self.schedule)
@@ -176,11 +180,13 @@ class _Run:
         """A "cut" verdict where the force has a kink inside the slab and the schedule ends the
         slab there (fem_dual.integrate.kinks: on the solved slab's values `vals`, or predicted
         from the start state where they are None), else None. Collective."""
+        if not self.kinked:  # (a smooth force: no kink to look for)
+            return None
         at = None
         if self.comm.rank == 0:
             scene = self.sim.scene
-            at = (predicted_kink_time(scene, self.state.z, t0, dt) if vals is None
-                  else kink_time(scene, t0, dt, vals))
+            at = (predicted_kink_time(scene, self.kink_flow, self.state.z, t0, dt)
+                  if vals is None else kink_time(scene, t0, dt, vals))
         at = bcast(self.comm, at)
         if at is None or not self.schedule.cut(at):
             return None

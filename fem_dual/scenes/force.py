@@ -119,26 +119,28 @@ class ExpressionForce(ForceScene):
                       Binv=np.eye(self.n) / self.beta)
         return values
 
+    @functools.cached_property
+    def _values(self) -> Dict[str, float]:
+        """The values of every name the expression may use (read-only)."""
+        return dict(self.values, m=self.m, alpha=self.alpha, beta=self.beta)
+
     def force_numpy(self, x: np.ndarray) -> np.ndarray:
-        values = dict(self.values, m=self.m, alpha=self.alpha, beta=self.beta)
-        return self.expression.numpy(np.asarray(x, dtype=float), values)
+        return self.expression.numpy(np.asarray(x, dtype=float), self._values)
 
     def kinks(self, x: np.ndarray) -> Optional[np.ndarray]:
         """(points, kinks): the arguments of the force's abs at the points `x` (points, n), whose
         sign changes are where its derivative jumps; None for a force without abs."""
         if not self.expression.kinks:
             return None
-        values = dict(self.values, m=self.m, alpha=self.alpha, beta=self.beta)
-        return self.expression.kink_values(np.asarray(x, dtype=float), values)
+        return self.expression.kink_values(np.asarray(x, dtype=float), self._values)
 
     def force_branch(self, signs):
         """F(x) on one branch of its kinks (`kinks` order, a sign each): smooth across them."""
-        values = dict(self.values, m=self.m, alpha=self.alpha, beta=self.beta)
+        values = self._values
         return lambda x: self.expression.branch(np.asarray(x, dtype=float), values, signs)
 
     def force_jacobian_numpy(self, x: np.ndarray) -> np.ndarray:
-        values = dict(self.values, m=self.m, alpha=self.alpha, beta=self.beta)
-        return self.expression.jacobian(np.asarray(x, dtype=float), values)
+        return self.expression.jacobian(np.asarray(x, dtype=float), self._values)
 
     def parameters(self) -> Dict[str, object]:
         return {"F": self.F, "m": self.m, "alpha": self.alpha, "beta": self.beta,
