@@ -288,7 +288,8 @@ class RunConfig:
                 "base": self.base, "coordinates": self.coordinates,
                 "recovery": self.recovery, "assembly": self.assembly,
                 "staging": self.staging, "superpose": self.superpose,
-                "max_halvings": self.max_halvings, "max_slabs": self.max_slabs, "petsc": dict(sorted(self.petsc.items())),
+                "max_halvings": self.max_halvings, "max_slabs": self.max_slabs,
+                "petsc": dict(sorted(self.petsc.items())),
                 "version": __version__}
 
     def check_petsc(self) -> None:
@@ -417,15 +418,14 @@ def _force_at_start(scene: Scene, x0: np.ndarray) -> None:
                      "rescale the force or the coordinates")
 
 
-def _tolerances(rtol_: Optional[float], atol: Optional[Number], slabs: Number,
+def _tolerances(rtol: Optional[float], atol: Optional[Number], slabs: Number,
                 slab_count: int) -> Tuple[Optional[float], float]:
     """(rtol, atol): rtol (checked already) sets the tolerance (atol only beside it) and
     chooses the lengths (slabs left at 1)."""
-    rtol = rtol_
     if atol is not None and rtol is None:
         raise InputError(f"atol={atol!r} needs rtol (atol alone sets no tolerance)")
     atol_ = 0.0 if atol is None else tolerance_value("atol", atol)
-    if rtol_ is not None and slab_count != 1:
+    if rtol is not None and slab_count != 1:
         raise InputError(f"slabs={slabs!r} and rtol={rtol!r} contradict each other: rtol "
                          "chooses the slab lengths")
-    return rtol_, atol_
+    return rtol, atol_

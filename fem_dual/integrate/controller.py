@@ -115,7 +115,7 @@ class SlabSchedule:
         self.resume = 0  # after a cut: the length the cut slab had, taken up again after it
 
     @property
-    def state(self) -> Tuple[int, int, int, int, int, int]:
+    def state(self) -> Tuple[int, ...]:
         """Everything `accept` and `halve` depend on (a resumed run restores it)."""
         return (self.pos, self.length, self.ceiling, self.wait, self.patience, self.aligned,
                 self.resume)

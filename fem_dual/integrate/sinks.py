@@ -32,8 +32,8 @@ class AcceptedSlab:
     dt: float
     values: VertexValues
     estimate: SlabEstimate
-    schedule: tuple = (0, 0, 0, 0, 0, 1)
-    scales: tuple = (0.0, 0.0)
+    schedule: tuple  # SlabSchedule.state after the slab
+    scales: tuple  # the error weights' scales of x and v after the slab
 
 
 class PartialBatch(Exception):

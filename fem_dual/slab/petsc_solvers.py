@@ -287,8 +287,8 @@ def check_true_residual(ksp: PETSc.KSP, A: PETSc.Mat, x: PETSc.Vec, b: PETSc.Vec
     r, dx = b.duplicate(), b.duplicate()
     iterations = 0
     # a direct solve is backward stable: its residual is round-off of |A| |x|, which the same
-    # factors cannot reduce further than the KSP's own refinement step (LINEAR_DEFAULTS) did:
-    # they are checked, not refined
+    # factors cannot reduce further than the KSP's own refinement step (REFINED_LU) did: they
+    # are checked, not refined
     iterative = ksp.getPC().getType() not in ("lu", "cholesky")
     try:
         bnorm = max(b.norm(), 1e-300)
