@@ -26,8 +26,7 @@ statically (:mod:`fem_dual.continua.condense`).
 """
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Dict
 
 import numpy as np
@@ -37,6 +36,7 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from fem_dual.compat import constant
+from fem_dual.continua.parameters import check_fields
 from fem_dual.continua.system import SpatialSystem
 from fem_dual.errors import InputError
 
@@ -68,17 +68,7 @@ class BeckParameters:
     load: str = "follower"
 
     def __post_init__(self):
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if f.name in ("elements", "degree"):
-                if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-                    raise InputError(f"beck: {f.name} must be a whole number >= 1, got {value!r}")
-            elif f.name == "load":
-                if value not in LOADS:
-                    raise InputError(f"beck: load must be one of {LOADS}, got {value!r}")
-            elif (isinstance(value, bool) or not isinstance(value, (int, float))
-                  or not math.isfinite(value)):
-                raise InputError(f"beck: {f.name} must be a finite number, got {value!r}")
+        check_fields(self, "beck", choices={"load": LOADS})
         for name in ("EI", "rhoA", "kGA", "L"):
             if getattr(self, name) <= 0:
                 raise InputError(f"beck: {name} must be positive, got {getattr(self, name)!r}")

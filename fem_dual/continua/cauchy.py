@@ -39,7 +39,7 @@ the spectrum itself.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 import ufl
@@ -47,6 +47,7 @@ from dolfinx import fem, mesh
 from mpi4py import MPI
 
 from fem_dual.compat import constant
+from fem_dual.continua.parameters import check_fields
 from fem_dual.continua.spectrum import SpectrumCheck, spectrum_check
 from fem_dual.continua.system import SpatialSystem
 from fem_dual.errors import InputError
@@ -72,15 +73,7 @@ class CauchyParameters:
     degree: int = 1
 
     def __post_init__(self):
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if f.name in ("elements", "degree"):
-                ok = isinstance(value, (int, np.integer)) and value >= 1
-            else:
-                ok = isinstance(value, (int, float)) and math.isfinite(value)
-            if isinstance(value, bool) or not ok:
-                raise InputError(f"cauchy: {f.name} must be a finite number (a whole number "
-                                 f">= 1 for elements and degree), got {value!r}")
+        check_fields(self, "cauchy")
         if self.mu <= 0 or self.lam + self.mu <= 0 or self.rho <= 0:
             raise InputError("cauchy: needs mu > 0, lam + mu > 0 (positive symmetric part of C) "
                              f"and rho > 0, got lam={self.lam}, mu={self.mu}, rho={self.rho}")
