@@ -98,7 +98,18 @@ class EigenFlow:
 
     @property
     def condition(self) -> float:
-        return float(np.linalg.cond(self.V))
+        """cond(V), the smaller of it as computed and with the velocity rows in units of the
+        mean frequency sqrt(|lambda|_min |lambda|_max) (the eigenvectors (x, lambda x) of a
+        stiff system differ in size by |lambda|: a beam with frequencies 5 to 1.2e6 has
+        cond(V) = 2.3e6, 2.2e3 in those units)."""
+        plain = float(np.linalg.cond(self.V))
+        size = np.abs(self.lam[self.lam != 0])
+        if not len(size):
+            return plain
+        scaled = self.V.copy()
+        scaled[self.n:] /= np.sqrt(size.min() * size.max())
+        scaled /= np.maximum(np.linalg.norm(scaled, axis=0), 1e-300)
+        return min(plain, float(np.linalg.cond(scaled)))
 
     def __call__(self, t: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         t = np.asarray(t, dtype=float)

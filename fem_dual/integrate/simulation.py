@@ -22,7 +22,7 @@ from fem_dual.petsc_check import solver_prefix
 from fem_dual.quiet import quiet_numpy
 from fem_dual.slab.backends import make_backend
 from fem_dual.slab.base_state import FlowPredictor
-from fem_dual.slab.modal import ModalBasis
+from fem_dual.slab.modal import RESOLVED_TURN, ModalBasis
 from fem_dual.slab.values import VertexValues
 
 __all__ = ["Simulation"]
@@ -92,6 +92,8 @@ class Simulation:
         self.tangent_solves = 0
         self._maps: Dict[float, Tuple[np.ndarray, np.ndarray]] = {}
         self._pairs: Dict[float, np.ndarray] = {}
+        self.resolution = (cells, degree)  # which modes the zero base drops (the companion's:
+        self.adaptive = False  # its partner's), under a tolerance
 
     def close(self) -> None:
         """Destroy the PETSc objects of the backend and the companion; the simulation cannot
@@ -148,6 +150,8 @@ class Simulation:
                                          modal=self.modal is not None and self.modal,
                                          mesh=self.backend.mesh, pointwise=self.pointwise,
                                          shared_predictor=base_state)
+            self._companion.resolution = self.resolution
+            self._companion.adaptive = self.adaptive
             self.setup_s += self._companion.setup_s
         return self._companion
 
@@ -161,6 +165,9 @@ class Simulation:
             self.backend.set_scene(config.scene if self.modal is None else self.modal.scene)
             self.scene = config.scene
         self.backend.reset(adaptive=config.rtol is not None)
+        self.adaptive = config.rtol is not None
+        if self._companion is not None:
+            self._companion.adaptive = self.adaptive
         self.superposition = None
         self.tangent_solves = 0
         self._maps = {}
@@ -181,7 +188,7 @@ class Simulation:
         Collective; raises SolveError when the slab cannot be solved."""
         n = self.scene.n
         if self.modal is not None:
-            z0 = self.modal.forward(z0)
+            z0 = self._dropped(self.modal.forward(z0), dt)
         if self.superposition is not None:
             values = self.superposition(z0[:n], z0[n:], dt)
         else:
@@ -198,7 +205,8 @@ class Simulation:
         if self.modal is None:
             values = self.superposition.batch(Z, dt, fields, last)
         else:
-            values = self.superposition.batch(self.modal.forward(Z), dt, fields, last)
+            values = self.superposition.batch(self._dropped(self.modal.forward(Z), dt), dt,
+                                              fields, last)
         if values is not None and not duals:
             values.xi = values.eta = None
         return values if self.modal is None else self.modal.back(values)
@@ -321,13 +329,21 @@ class Simulation:
         columns = [self.tangent(z, unit, t0, dt, values) for unit in np.eye(len(z))]
         return None if self.comm.rank != 0 else np.column_stack([c[-1] for c in columns])
 
+    def _dropped(self, r: np.ndarray, dt: float) -> np.ndarray:
+        """Modal start state(s) r without the modes the answer's slabs do not resolve, on the
+        zero base under a tolerance (the companion drops the same ones)."""
+        if self.base != "zero" or not self.adaptive:
+            return r
+        return self.modal.drop(r, dt, *self.resolution, RESOLVED_TURN)
+
     def unresolved(self, z0: np.ndarray, dt: float) -> Optional[np.ndarray]:
         """(2n,): the part of z0 in modes the slab does not resolve, which the zero base damps
         (modal coordinates only: elsewhere the modes are not at hand; None); of many start
         states (slabs, 2n) at once."""
         if self.modal is None or self.base != "zero":
             return None
-        return self.modal.unresolved(z0, dt, self.cells, self.degree)
+        return self.modal.unresolved(z0, dt, *self.resolution,
+                                     RESOLVED_TURN if self.adaptive else 1.0)
 
     def verify(self) -> Optional[str]:
         """Why the last slab solve cannot be trusted although it converged, or None."""

@@ -140,17 +140,31 @@ class LinearScene(Scene):
         200-link column)."""
         return np.linalg.eig(self.first_order_matrix())
 
-    def fastest_rate(self, x0=None, v0=None) -> float:
+    def fastest_rate(self, x0=None, v0=None, relative: float = 1e-6,
+                     scales: Optional[Tuple[float, float]] = None) -> float:
         """max |lambda| over the eigenvalues of the first-order system (radians per unit time,
         growth and decay included); given a start state, over the modes it excites (modal
-        amplitude above 1e-6 of the state)."""
+        amplitude above `relative` of the state). With `scales` (of x and of v): over the
+        modes that are left once the fastest ones, together, carry at most `relative` x the
+        scales in x and in v (|x| and |v| per component, summed over the modes left out): the
+        modes a zero base may drop within that tolerance."""
         lam, U = self.spectrum
         if x0 is None:
             return float(np.abs(lam).max())
         z0 = np.concatenate([x0, v0])
-        amplitude = np.abs(np.linalg.lstsq(U, z0, rcond=None)[0]) * np.linalg.norm(U, axis=0)
-        excited = amplitude > 1e-6 * max(np.linalg.norm(z0), 1e-300)
-        return float(np.abs(lam[excited]).max()) if excited.any() else 0.0
+        coefficients = np.linalg.lstsq(U, z0, rcond=None)[0]
+        if scales is None:
+            amplitude = np.abs(coefficients) * np.linalg.norm(U, axis=0)
+            excited = amplitude > relative * max(np.linalg.norm(z0), 1e-300)
+            return float(np.abs(lam[excited]).max()) if excited.any() else 0.0
+        n = self.n
+        parts = np.abs(U * coefficients)  # (2n, modes): each mode's |x| and |v| per component
+        order = np.argsort(-np.abs(lam), kind="stable")  # fastest first
+        tail_x = np.cumsum(parts[:n, order], axis=1).max(axis=0)
+        tail_v = np.cumsum(parts[n:, order], axis=1).max(axis=0)
+        dropped = (tail_x <= relative * scales[0]) & (tail_v <= relative * scales[1])
+        kept = order[np.argmin(dropped):] if not dropped.all() else order[:0]
+        return float(np.abs(lam[kept]).max()) if len(kept) else 0.0
 
     def reference(self, x0, v0):
         from fem_dual.reference import linear_flow

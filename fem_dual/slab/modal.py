@@ -28,6 +28,10 @@ from fem_dual.scenes.linear import LinearScene
 
 __all__ = ["ModalScene", "ModalBasis", "MAX_CONDITION", "modal_obstacle"]
 
+RESOLVED_TURN = 0.25  # under a tolerance the zero base drops a mode turning more than this x
+# degree radians per cell: between it and degree radians the slab follows the mode with an
+# error that does not shrink like dt^(2p+1) (judged per unit of time it drove the slabs of a
+# beam to 1e-6 of its period), beyond it the mode is damped anyway
 MAX_CONDITION = 1e8  # cond(U) beyond this: modes too close to coalescing (near flutter)
 
 
@@ -148,21 +152,40 @@ class ModalBasis:
         self.omega = np.sqrt(np.linalg.norm(Kr, axis=1))
         self.scene.validate()
 
-    def unresolved(self, z: np.ndarray, dt: float, cells: int, degree: int) -> np.ndarray:
-        """(2n,): how much of the state z (physical) lies in modes that turn more than `degree`
-        radians per cell of a slab of length dt, as |x| and |v| per component (summed over
-        those modes); of many states (slabs, 2n) at once. The zero base damps them within a
-        slab: this is what the answer loses, which the companion of degree p + 1, damping them
-        too, cannot show."""
+    def unresolved(self, z: np.ndarray, dt: float, cells: int, degree: int,
+                   turn: float = 1.0) -> np.ndarray:
+        """(2n,): how much of the state z (physical) lies in modes that turn more than
+        `turn` x `degree` radians per cell of a slab of length dt, as |x| and |v| per component
+        (summed over those modes); of many states (slabs, 2n) at once. The zero base damps
+        them within a slab (or `drop` takes them away): this is what the answer loses, which
+        the companion of degree p + 1, damping them too, cannot show."""
         r = self.forward(z)
         n = r.shape[-1] // 2
-        fast = self.omega * dt / cells > degree
+        fast = self.fast(dt, cells, degree, turn)
         if not fast.any():
             return np.zeros(r.shape)
         w = self.omega[fast]
         amplitude = np.hypot(r[..., :n][..., fast], r[..., n:][..., fast] / w)  # per mode
         size = np.abs(self.U[:, fast])
         return np.concatenate([amplitude @ size.T, (w * amplitude) @ size.T], axis=-1)
+
+    def fast(self, dt: float, cells: int, degree: int, turn: float = 1.0) -> np.ndarray:
+        """(n,) bool: the modes that turn more than `turn` x `degree` radians per cell of a
+        slab of length dt with `cells` cells."""
+        return self.omega * dt / cells > turn * degree
+
+    def drop(self, r: np.ndarray, dt: float, cells: int, degree: int,
+             turn: float) -> np.ndarray:
+        """The modal state(s) r without the modes `fast` names (the zero base's damping made
+        exact: what it takes away is `unresolved`, judged once)."""
+        fast = self.fast(dt, cells, degree, turn)
+        if not fast.any():
+            return r
+        n = r.shape[-1] // 2
+        r = np.array(r, dtype=float)
+        r[..., :n][..., fast] = 0.0
+        r[..., n:][..., fast] = 0.0
+        return r
 
     def forward(self, z: np.ndarray) -> np.ndarray:
         """(x, v) -> (r, r'), of one state (2n,) or many (slabs, 2n)."""
