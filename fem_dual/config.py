@@ -245,7 +245,8 @@ class RunConfig:
                rtol: Optional[Number] = None, atol: Optional[Number] = None,
                base: str = "auto", coordinates: str = "auto", reference: str = "auto",
                t_eval: Optional[Union[str, Sequence[float]]] = None,
-               max_slabs: Number = 5000, check_petsc: bool = True) -> "RunConfig":
+               max_slabs: Number = 5000, u0: Optional[Union[str, Sequence[str]]] = None,
+               check_petsc: bool = True) -> "RunConfig":
         """Validate every input; raises InputError naming the first bad value.
 
         With `rtol` (and optionally `atol`) the slab lengths are chosen by the error estimate
@@ -257,7 +258,7 @@ class RunConfig:
         rtol_value = None if rtol is None else tolerance_value("rtol", rtol)
         cells, degree = default_discretisation(rtol_value, cells, degree)
         cells_, degree_, slabs_ = _discretisation(cells, degree, slabs)
-        x0_, v0_ = _start_state(scene, x0, v0)
+        x0_, v0_ = _start_state(scene, x0, v0, u0)
         out_, petsc_ = output_path(out), petsc_options(petsc)
         halvings = whole_number("max-halvings", max_halvings, minimum=0)
         if halvings > 30:
@@ -355,11 +356,20 @@ def _discretisation(cells: Number, degree: Number, slabs: Number) -> Tuple[int, 
     return cells_, degree_, slabs_
 
 
-def _start_state(scene: Scene, x0, v0) -> Tuple[np.ndarray, np.ndarray]:
-    """(x0, v0): the scene's defaults or the given vectors, within STATE_MAX."""
+def _start_state(scene: Scene, x0, v0, u0=None) -> Tuple[np.ndarray, np.ndarray]:
+    """(x0, v0): the scene's defaults or the given vectors, within STATE_MAX; for a continuum
+    scene from its start fields u0, v0 (expressions of the spatial coordinates)."""
     n = scene.n
-    x0_ = parse_vector("x0", scene.default_x0 if x0 is None else x0, n)
-    v0_ = parse_vector("v0", scene.default_v0 if v0 is None else v0, n)
+    if scene.continuum and x0 is None:  # (x0 given: the free dofs' vector, as final.x)
+        x0_, v0_, _ = scene.start_state(u0, v0)
+    elif u0 is not None and x0 is not None:
+        raise InputError("the start is given twice: u0 (fields) and x0 (the dofs' vector)")
+    elif u0 is not None:
+        raise InputError(f"u0 gives the start fields of a continuum scene ({scene.name} is "
+                         "not one): give x0")
+    else:
+        x0_ = parse_vector("x0", scene.default_x0 if x0 is None else x0, n)
+        v0_ = parse_vector("v0", scene.default_v0 if v0 is None else v0, n)
     for name, value in (("x0", x0_), ("v0", v0_)):
         within_state_max(f"{name}={','.join(map(repr, map(float, value)))}", value,
                          "rescale the coordinates")

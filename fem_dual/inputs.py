@@ -13,6 +13,7 @@ from typing import Dict, Optional, Sequence, Union
 
 import numpy as np
 
+import fem_dual.continua.scenes  # noqa: F401 (registers the continuum scenes: beck, ...)
 from fem_dual.errors import InputError
 from fem_dual.scenes import Scene, get_scene
 from fem_dual.scenes.base import DECIMAL, STATE_MAX, parse_number, show

@@ -72,6 +72,7 @@ def _main(argv: Optional[Sequence[str]], comm: "Optional[MPI.Comm]") -> int:
 def _command(args, comm: "Optional[MPI.Comm]") -> int:
     """Run the parsed command; its exit status."""
     if args.command == "scenes":
+        import fem_dual.continua.scenes  # noqa: F401 (registers beck)
         from fem_dual.scenes import SCENES
 
         print0(comm, "\n".join(cls.listing() for cls in SCENES.values()))

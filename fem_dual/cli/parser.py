@@ -12,7 +12,7 @@ from fem_dual.errors import InputError
 __all__ = ["build_parser", "key_value", "join_negative_values"]
 
 # Options whose value may start with "-" (negative numbers): "--x0 -1,2" is joined to "--x0=-1,2".
-_VALUE_OPTIONS = ("--T", "--x0", "--v0", "--param", "--cells", "--degree", "--slabs",
+_VALUE_OPTIONS = ("--T", "--x0", "--v0", "--u0", "--param", "--cells", "--degree", "--slabs",
                   "--max-halvings", "--rtol", "--atol", "--F", "--t-eval", "--period",
                   "--mode", "--continue")
 
@@ -68,7 +68,10 @@ def _add_problem_arguments(p: argparse.ArgumentParser, slabs_help: str) -> None:
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                    help="scene parameter (repeatable); matrices as a11,a12,... or a scalar")
     p.add_argument("--x0", help="initial position a,b,...")
-    p.add_argument("--v0", help="initial velocity a,b,...")
+    p.add_argument("--v0", help="initial velocity a,b,...; continuum scenes (beck): "
+                   "the velocity field, one expression per field component")
+    p.add_argument("--u0", help="continuum scenes: the start field, one expression per field "
+                   "component in the spatial coordinates (x; x, y), e.g. \"0.01*x**2, 0.02*x\"")
 
 
 def _run(sub) -> None:

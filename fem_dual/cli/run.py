@@ -149,7 +149,7 @@ def _config(args, params: Dict[str, Any]):
                               recovery=args.recovery, assembly=args.assembly,
                               rtol=args.rtol, atol=args.atol, base=args.base,
                               coordinates=args.coordinates, reference=args.reference,
-                              t_eval=args.t_eval, max_slabs=args.max_slabs)
+                              t_eval=args.t_eval, max_slabs=args.max_slabs, u0=args.u0)
     if args.resume and args.out is None:
         raise InputError("--resume needs --out: the directory of the run to go on with")
     return config

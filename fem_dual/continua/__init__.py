@@ -7,14 +7,21 @@ Modules: ``system`` (SpatialSystem), ``dofs`` (dof layout, free dofs, gathers), 
 ``condense`` (Beck's column, theta condensed), ``flutter`` (eigenvalue flutter and buckling
 loads), ``cauchy`` (the clamped square), ``spectrum`` (is the spectrum real).
 """
-from fem_dual.continua.beck import BeckColumn, BeckParameters
-from fem_dual.continua.cauchy import CauchyElasticity, CauchyParameters
-from fem_dual.continua.condense import CondensedBeck, condense_rotation
-from fem_dual.continua.flutter import FlutterResult, buckling_load, flutter_load, frequencies
-from fem_dual.continua.spectrum import SpectrumCheck, spectrum_check
-from fem_dual.continua.system import DENSE_LIMIT, SpatialSystem, compile_form
+import importlib
 
-__all__ = ["SpatialSystem", "DENSE_LIMIT", "compile_form", "BeckParameters", "BeckColumn",
-           "CondensedBeck", "condense_rotation", "FlutterResult", "flutter_load",
-           "buckling_load", "frequencies", "CauchyParameters", "CauchyElasticity",
-           "SpectrumCheck", "spectrum_check"]
+_WHERE = {"BeckColumn": "beck", "BeckParameters": "beck", "CauchyElasticity": "cauchy",
+          "CauchyParameters": "cauchy", "CondensedBeck": "condense",
+          "condense_rotation": "condense", "FlutterResult": "flutter", "flutter_load": "flutter",
+          "buckling_load": "flutter", "frequencies": "flutter", "SpectrumCheck": "spectrum",
+          "spectrum_check": "spectrum", "DENSE_LIMIT": "system", "SpatialSystem": "system",
+          "compile_form": "system"}
+
+__all__ = sorted(_WHERE)
+
+
+def __getattr__(name: str):
+    """The names above, imported on first use: registering the continuum scenes (for the
+    command line's validation) loads no DOLFINx."""
+    if name not in _WHERE:
+        raise AttributeError(f"module 'fem_dual.continua' has no attribute {name!r}")
+    return getattr(importlib.import_module(f"fem_dual.continua.{_WHERE[name]}"), name)

@@ -307,6 +307,8 @@ class Scene(abc.ABC):
     size_field: ClassVar[Optional[str]] = None  # the parameter that sets n (a column's links)
     min_dofs: ClassVar[int] = 1
     max_dofs: ClassVar[int] = MAX_DOFS  # a scene may lower it; MAX_DOFS bounds every scene
+    whole_fields: ClassVar[Tuple[str, ...]] = ()  # parameters that are whole numbers
+    continuum: ClassVar[bool] = False  # a spatial discretisation: start state from fields
 
     # -- construction -------------------------------------------------------------------------
     @classmethod
@@ -332,7 +334,8 @@ class Scene(abc.ABC):
         kind = {key: known[key].metadata.get("kind", "float") for key in params}
         values: Dict[str, object] = {key: parse_number(key, text) for key, text in params.items()
                                      if kind[key] == "float"}
-        for size in {"links", "dofs", cls.size_field} - {None}:  # sizes: n depends on them
+        sizes = {"links", "dofs", cls.size_field, *cls.whole_fields} - {None}
+        for size in sizes:  # whole numbers (sizes: n depends on them)
             if size in values:
                 values[size] = _whole(size, values[size])
         n = cls.check_size(cls(**values).n)  # scalar fields first: n may depend on them

@@ -1,0 +1,90 @@
+"""`fem-dual run beck`: Beck's column as a scene, its start fields, the estimate against the exact
+motion of its semi-discrete system, and the fast modes the slabs drop (never amplified)."""
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import scipy.linalg as sla
+
+from fem_dual.config import RunConfig
+from fem_dual.errors import InputError
+from fem_dual.integrate.api import run
+
+
+def _modal_motion(M, K, x0, v0, T):
+    """(x(T), v(T)) of M x'' + K x = 0 from the modes of (K, M) (real below flutter)."""
+    lam, U = sla.eig(K, M)
+    assert np.abs(lam.imag).max() <= 1e-9 * np.abs(lam).max()
+    omega, U = np.sqrt(lam.real), U.real
+    a, b = np.linalg.solve(U, x0), np.linalg.solve(U, v0) / omega
+    c, s = np.cos(omega * T), np.sin(omega * T)
+    return U @ (a * c + b * s), U @ (omega * (b * c - a * s))
+
+
+@pytest.mark.parametrize("P", [0.0, 10.0, 19.0])
+def test_the_estimate_bounds_the_error_against_the_modes_of_the_semi_discrete_system(P):
+    config = RunConfig.create("beck", {"P": str(P), "elements": "20"}, T=1, rtol=1e-3)
+    r = run(config)
+    assert r.status == "ok" and r.solver["base"] == "zero"
+    M, K = config.scene.mass_matrix(), config.scene.stiffness_matrix()
+    x0, v0 = np.asarray(r.x0, float), np.asarray(r.v0, float)
+    xT, vT = _modal_motion(M, K, x0, v0, 1.0)
+    error = max(np.abs(np.asarray(r.final["x"]) - xT).max(),
+                np.abs(np.asarray(r.final["v"]) - vT).max())
+    tol = 1e-3 * max(r.tolerance["scale_x"], r.tolerance["scale_v"])
+    assert error <= r.error_estimate <= 10 * tol
+    assert error >= tol / 100  # the cost follows the tolerance: not far below it
+
+
+def test_without_load_the_energy_is_kept_and_never_grows():
+    """P = 0: K is symmetric and the energy 1/2 v'Mv + 1/2 w'Kw is conserved; the modes the slabs
+    drop take their (tiny) energy away, never add any."""
+    config = RunConfig.create("beck", {"P": "0", "elements": "20"}, T=2, rtol=1e-3)
+    r = run(config)
+    M, K = config.scene.mass_matrix(), config.scene.stiffness_matrix()
+
+    def energy(x, v):
+        x, v = np.asarray(x, float), np.asarray(v, float)
+        return 0.5 * v @ M @ v + 0.5 * x @ K @ x
+
+    start, end = energy(r.x0, r.v0), energy(r.final["x"], r.final["v"])
+    assert r.status == "ok"
+    assert end <= start * (1 + 1e-12)
+    assert end >= start * (1 - 1e-4)  # (measured: 2.8e-7 lower)
+
+
+def test_default_start_is_the_static_deflection_under_a_uniform_load():
+    config = RunConfig.create("beck", {"elements": "10"}, rtol=1e-3)
+    scene, x0 = config.scene, np.asarray(config.x0)
+    load = np.linalg.solve(scene.mass_matrix(), scene.condensed.K_el @ x0)
+    assert np.allclose(load, load[0], rtol=1e-8)  # K_el w = M 1 c: a uniform load
+    assert np.abs(x0).max() == pytest.approx(0.01)
+    assert not np.any(config.v0)
+
+
+def test_start_fields_from_expressions_of_x():
+    config = RunConfig.create("beck", {"elements": "10", "degree": "2"},
+                              u0="0.01*x**2, 0.02*x", v0="0, 0", rtol=1e-3)
+    w = np.asarray(config.x0)
+    assert w.max() == pytest.approx(0.01, rel=1e-6)  # the tip of 0.01 x^2 (w in P2: exact)
+
+
+@pytest.mark.parametrize("u0, words", [("0.01*x**2", "expected 2"),
+                                       ("0.01*x**2, 0.02*q", "q"),
+                                       ("0.01*x**2, 0.02*x, 1", "expected 2")])
+def test_bad_start_fields_name_the_bad_value(u0, words):
+    with pytest.raises(InputError, match=words):
+        RunConfig.create("beck", {"elements": "10"}, u0=u0, rtol=1e-3)
+
+
+def test_u0_on_a_particle_scene_is_refused():
+    with pytest.raises(InputError, match="u0"):
+        RunConfig.create("ziegler", {}, u0="1, 2")
+
+
+def test_command_line_refuses_bad_fields_in_one_line():
+    done = subprocess.run([sys.executable, "-m", "fem_dual.cli", "run", "beck", "--u0", "x, y",
+                           "--rtol", "1e-3"], capture_output=True, text=True)
+    assert done.returncode == 2
+    assert len(done.stderr.strip().splitlines()) == 1 and "y" in done.stderr
