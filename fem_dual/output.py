@@ -150,7 +150,19 @@ class _Release:
 def series_files(out: Path, name: str) -> List[Path]:
     """The files a run of scene `name` writes into `out` (series and trajectory)."""
     return [out / f"{name}{tail}" for tail in (".xdmf", ".h5", "_trajectory.xdmf",
-                                               "_trajectory.h5")]
+                                               "_trajectory.h5", "_system.npz", "_fields.xdmf",
+                                               "_fields.h5")]
+
+
+def write_arrays(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
+    """`arrays` as an uncompressed .npz (numpy.load reads it), marked as ours: its first entry,
+    `fem_dual`, holds MARK, which `written_by_us` finds in the file's first bytes."""
+    marked = {"fem_dual": np.frombuffer(MARK.encode(), dtype=np.uint8), **arrays}
+
+    def write(tmp: Path) -> None:
+        with open(tmp, "wb") as f:
+            np.savez(f, **marked)
+    _replace_atomically(path, write)
 
 
 def _points3(points: np.ndarray) -> np.ndarray:
@@ -191,9 +203,14 @@ def _row_item(h5name: str, path: str, row: int, shape: tuple) -> str:
             f"{h5name}:{path}|{start}:{stride}:{count}:{full}</DataItem>")
 
 
-def _grid_xml(h5name: str, prefix: str, npoints: int, ncells: int) -> List[str]:
-    return [f'<Topology TopologyType="Polyline" NumberOfElements="{ncells}" NodesPerElement="2">',
-            _data_item(h5name, f"/{prefix}/topology", (ncells, 2), integer=True), "</Topology>",
+def _grid_xml(h5name: str, prefix: str, npoints: int, ncells: int,
+              corners: int = 2) -> List[str]:
+    """A polyline (2 vertices per cell) or a triangle mesh (3)."""
+    kind = "Polyline" if corners == 2 else "Triangle"
+    return [f'<Topology TopologyType="{kind}" NumberOfElements="{ncells}" '
+            f'NodesPerElement="{corners}">',
+            _data_item(h5name, f"/{prefix}/topology", (ncells, corners), integer=True),
+            "</Topology>",
             '<Geometry GeometryType="XYZ">',
             _data_item(h5name, f"/{prefix}/geometry", (npoints, 3)), "</Geometry>"]
 
@@ -234,13 +251,16 @@ class XdmfSeries:
     """
 
     def __init__(self, path: Path, points: np.ndarray, fields: Mapping[str, tuple],
-                 restart: Mapping[str, tuple], attrs: Mapping[str, object]):
+                 restart: Mapping[str, tuple], attrs: Mapping[str, object],
+                 cells: Optional[np.ndarray] = None):
         import h5py
 
         self.path, self.h5path = path, path.with_suffix(".h5")
         self.h5name = self.h5path.name
         self.fields, self.restart = dict(fields), dict(restart)
         pts, lines = _polyline(points)
+        if cells is not None:  # a triangle mesh (the points in any order)
+            lines = np.asarray(cells, dtype=np.int64)
         for stale in (self.path, self.h5path):  # an earlier run's files are not this run's
             if stale.exists():
                 stale.unlink()
@@ -261,6 +281,7 @@ class XdmfSeries:
 
         ensure_space(path.parent, SPACE_MARGIN + 2 * pts.nbytes)
         _replace_atomically(self.h5path, write_h5)
+        self.corners = lines.shape[1]
         self.broken = ""
         self._start_xml(len(pts), len(lines), steps=0)
         self.buffer: List[Tuple[float, Dict[str, np.ndarray], Dict[str, np.ndarray]]] = []
@@ -271,7 +292,8 @@ class XdmfSeries:
         """The XML of the mesh and the first `steps` rows, written whole (atomically)."""
         self.count = steps  # rows on disk, in the HDF5 file and the XML alike
         head = _head_xml(['<Grid Name="mesh" GridType="Uniform">']
-                         + _grid_xml(self.h5name, "mesh", npoints, ncells) + ["</Grid>",
+                         + _grid_xml(self.h5name, "mesh", npoints, ncells, self.corners)
+                         + ["</Grid>",
                          '<Grid Name="TimeSeries" GridType="Collection" '
                          'CollectionType="Temporal">'])
         text = head + "".join(self._step_xml(k, None) for k in range(steps))
@@ -294,6 +316,7 @@ class XdmfSeries:
             steps = len(h5["steps/time"])
             self._times = h5["steps/time"][:]
             npts, ncells = len(h5["mesh/geometry"]), len(h5["mesh/topology"])
+            self.corners = h5["mesh/topology"].shape[1]
         self._start_xml(npts, ncells, steps)
         del self._times
         self.buffer, self.buffered_bytes = [], 0

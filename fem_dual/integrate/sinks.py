@@ -13,8 +13,8 @@ import numpy as np
 
 from fem_dual.config import RunConfig
 from fem_dual.errors import InputError
-from fem_dual.output import (XdmfSeries, lock_directory, series_files, write_polyline,
-                             written_by_us)
+from fem_dual.output import (XdmfSeries, lock_directory, series_files, write_arrays,
+                             write_polyline, written_by_us)
 from fem_dual.slab.values import VertexValues
 from fem_dual.integrate.estimate import SlabEstimate
 
@@ -261,6 +261,7 @@ class XdmfSink:
     def __init__(self, config: RunConfig, name: str, resume=None):
         self.out: Path = config.out
         self.name = name
+        self.fields: Optional[FieldSeries] = None
         self.identity = config.identity()
         self.series: Optional[XdmfSeries] = resume.series if resume is not None else None
         self.seconds = 0.0
@@ -273,6 +274,11 @@ class XdmfSink:
                         raise InputError(f"--out {self.out}: {stale.name} was not written by "
                                          "fem-dual; move it away or choose another directory")
                     stale.unlink()
+        if getattr(config.scene, "continuum", False):
+            # a continuum: its semi-discrete system, to check against, and its fields in space
+            write_arrays(self.out / f"{name}_system.npz",
+                         config.scene.system_arrays(config.x0, config.v0))
+            self.fields = FieldSeries(config, name, resume is not None)
 
     def add_batch(self, batch: SlabBatch) -> None:
         """Raises PartialBatch when a slab cannot be written (the ones before it are)."""
@@ -291,6 +297,8 @@ class XdmfSink:
                                      {k: a.shape for k, a in fields.items()},
                                      {k: a.shape for k, a in restart.items()}, self.identity)
         self.series.write(slab.t0, fields, restart)
+        if self.fields is not None:
+            self.fields.add(slab)
         self.seconds += time.perf_counter() - tic
 
     def close(self, t: np.ndarray, x: np.ndarray, v: np.ndarray) -> List[str]:
@@ -299,6 +307,8 @@ class XdmfSink:
         if self.series is not None and not self.series.broken:
             self.series.close()
             write_polyline(self.out / f"{self.name}_trajectory.xdmf", x, {"t": t, "v_hat": v})
+        if self.fields is not None:
+            self.fields.close()
         self.seconds += time.perf_counter() - tic
         self.release()
         return self.files_on_disk()
@@ -316,6 +326,35 @@ class XdmfSink:
     def files_on_disk(self) -> List[str]:
         """Our files that exist (after a failed close)."""
         return [str(p) for p in series_files(self.out, self.name) if p.exists()]
+
+
+class FieldSeries:
+    """A continuum's fields and their velocities on its spatial mesh at every time vertex of the
+    accepted slabs (`<scene>_fields.xdmf`, one step per time; each slab's first vertex is the
+    previous slab's last), streamed like the slab series."""
+
+    def __init__(self, config: RunConfig, name: str, resume: bool):
+        self.scene, self.identity = config.scene, config.identity()
+        self.path = config.out / f"{name}_fields.xdmf"
+        self.series = XdmfSeries.reopen(self.path) if resume and self.path.exists() else None
+        self.first = self.series is None
+
+    def add(self, slab: AcceptedSlab) -> None:
+        vals = slab.values
+        fields = self.scene.vertex_fields(vals.x, vals.v)
+        if self.series is None:
+            points, cells = self.scene.vertex_mesh()
+            self.series = XdmfSeries(self.path, points,
+                                     {k: a.shape[1:] for k, a in fields.items()}, {},
+                                     self.identity, cells)
+        times = slab.t0 + slab.dt * vals.s
+        for k in range(0 if self.first else 1, len(times)):
+            self.series.write(times[k], {name: a[k] for name, a in fields.items()}, {})
+        self.first = False
+
+    def close(self) -> None:
+        if self.series is not None and not self.series.broken:
+            self.series.close()
 
 
 class ProgressSink:

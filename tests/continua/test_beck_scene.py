@@ -88,3 +88,41 @@ def test_command_line_refuses_bad_fields_in_one_line():
                            "--rtol", "1e-3"], capture_output=True, text=True)
     assert done.returncode == 2
     assert len(done.stderr.strip().splitlines()) == 1 and "y" in done.stderr
+
+
+def test_out_holds_the_semi_discrete_system_that_reproduces_the_run(tmp_path):
+    """`<scene>_system.npz`: M, K, D of the free dofs and u0, v0 in the order of the JSON's
+    final.x / final.v; the matrix exponential of that system lands within the run's estimate."""
+    config = RunConfig.create("beck", {"elements": "10"}, T=0.5, rtol=1e-3, out=str(tmp_path))
+    r = run(config)
+    path = tmp_path / "beck_system.npz"
+    assert str(path) in r.output_files
+    z = np.load(path)
+    M, K, D = z["M"], z["K"], z["D"]
+    n = len(M)
+    assert K.shape == D.shape == (n, n) and z["dof_coordinates"].shape == (n, 1)
+    A = np.block([[np.zeros((n, n)), np.eye(n)],
+                  [-np.linalg.solve(M, K), -np.linalg.solve(M, D)]])
+    end = sla.expm(0.5 * A) @ np.concatenate([z["u0"], z["v0"]])
+    error = max(np.abs(end[:n] - r.final["x"]).max(), np.abs(end[n:] - r.final["v"]).max())
+    assert 0 < error <= r.error_estimate
+
+
+def test_fields_on_the_beam_at_every_time_vertex(tmp_path):
+    """`beck_fields.xdmf`: w, theta and their velocities at the mesh's vertices, one step per
+    time vertex, from the start state to the final one."""
+    from fem_dual.output import read_series
+
+    config = RunConfig.create("beck", {"elements": "10"}, T=0.25, rtol=1e-3, out=str(tmp_path))
+    r = run(config)
+    points, times, steps = read_series(tmp_path / "beck_fields.xdmf")
+    assert np.allclose(points[:, 0], np.linspace(0, 1, 11))
+    assert len(times) == len(steps) == r.cells * len(r.slab_lengths) + 1  # the time vertices
+    assert np.all(np.diff(times) > 0) and times[0] == 0 and times[-1] == pytest.approx(0.25)
+    assert set(steps[0]) == {"w", "theta", "w_dot", "theta_dot"}
+    x_dofs = config.scene.dof_coordinates()[:, 0]
+    tip = np.argmax(x_dofs)  # the free w dof at x = L, the mesh's last vertex
+    assert steps[-1]["w"][-1] == pytest.approx(r.final["x"][tip], rel=1e-12)
+    assert steps[-1]["w_dot"][-1] == pytest.approx(r.final["v"][tip], rel=1e-12)
+    assert steps[0]["w"][0] == 0 and steps[0]["theta"][0] == 0  # clamped
+    assert np.abs(steps[0]["w_dot"]).max() <= 1e-14  # at rest (the recovered start)
