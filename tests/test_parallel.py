@@ -19,7 +19,8 @@ SCENE_ARGS = {"ziegler": dict(T=6.0, cells=20, degree=3, slabs=3),
               "curl2d-lifted": dict(T=2.0, cells=20, degree=3, slabs=4),
               "force": dict(params={"F": "-x - a*y**3, a*x - y", "a": "0.5"}, T=2.0, cells=20,
                             degree=3, slabs=2, x0="1,0", v0="0,0.5"),
-              "beck": dict(params={"P": "10", "elements": "10"}, T=0.5, rtol=1e-3)}
+              "beck": dict(params={"P": "10", "elements": "10"}, T=0.5, rtol=1e-3),
+              "cauchy2d": dict(params={"elements": "4"}, T=0.5, rtol=1e-6)}
 
 
 def test_every_scene_is_covered():

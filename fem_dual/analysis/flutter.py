@@ -245,6 +245,11 @@ def flutter(base: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD,
                          f"{type(base).__name__}")
     if not isinstance(base.scene, LinearScene) or not hasattr(base.scene, "P"):
         raise InputError(f"flutter needs a linear scene with a load P, not {base.scene.name}")
+    if base.scene.continuum:
+        raise InputError(f"flutter {base.scene.name}: the dual search fits a one-step map to the "
+                         "whole state, which a stiff continuum's motion does not determine; its "
+                         "eigenvalue load is fem_dual.continua.flutter.flutter_load "
+                         "(docs/continua.md)")
     tic = time.perf_counter()
     lam0 = _eigenvalues(base.scene, 0.0)
     eig_tol = eigen_tolerance(base.scene)

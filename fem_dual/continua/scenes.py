@@ -22,10 +22,10 @@ from typing import ClassVar, Dict, Optional, Sequence, Tuple
 import numpy as np
 from fem_dual.errors import InputError
 from fem_dual.scenes import register
-from fem_dual.scenes.base import require_positive, show
+from fem_dual.scenes.base import MAX_DOFS, require_positive, show
 from fem_dual.scenes.linear import LinearScene
 
-__all__ = ["ContinuumScene", "Beck", "split_fields"]
+__all__ = ["ContinuumScene", "Beck", "Cauchy2D", "split_fields"]
 
 
 def split_fields(name: str, text, count: int) -> Tuple[str, ...]:
@@ -62,6 +62,24 @@ class ContinuumScene(LinearScene):
     default_v0_fields: ClassVar[Tuple[str, ...]] = ()
     whole_fields: ClassVar[Tuple[str, ...]] = ("elements", "degree")
 
+    def _free_dofs(self, n: int, degrees: range) -> int:
+        """n, the free dofs of `elements` cells of `degree`; InputError naming elements or
+        degree where the dense path cannot hold them."""
+        if not isinstance(self.degree, (int, np.integer)) or self.degree not in degrees:
+            raise InputError(f"degree={show(self.degree)} must be from {degrees.start} to "
+                             f"{degrees.stop - 1}")
+        limit = min(self.max_dofs, MAX_DOFS)
+        if isinstance(self.elements, (int, np.integer)) and self.elements < 1:
+            raise InputError(f"elements={show(self.elements)} must be at least 1")
+        if isinstance(self.elements, (int, np.integer)) and n < 1:
+            raise InputError(f"elements={show(self.elements)} with degree {self.degree} leaves "
+                             "no free dof")
+        if isinstance(self.elements, (int, np.integer)) and n > limit:
+            raise InputError(f"elements={show(self.elements)} is too large: with degree "
+                             f"{self.degree} it gives {n} free dofs, more than the {limit} of the "
+                             f"dense path of scene {self.name}")
+        return n
+
     def start_state(self, u0, v0) -> Tuple[np.ndarray, np.ndarray, Dict[str, object]]:
         """(x0, v0, notes) from the start fields' expressions (None: the defaults; u0 None:
         `default_start` where the scene has one)."""
@@ -86,6 +104,66 @@ class ContinuumScene(LinearScene):
                 f"{', '.join(cls.default_v0_fields)}\n  parameters: {params}")
 
     default_start_text: ClassVar[str] = ""
+
+    def system_arrays(self, x0: np.ndarray, v0: np.ndarray) -> Dict[str, np.ndarray]:
+        """The semi-discrete system M x'' + D x' + K x = 0 of the free dofs, in the order of the
+        JSON's x and v, with the start vectors u0, v0 (what `<scene>_system.npz` holds)."""
+        return {"M": self.mass_matrix(), "K": self.stiffness_matrix(),
+                "D": self.damping_matrix(), "u0": np.asarray(x0, float),
+                "v0": np.asarray(v0, float), "dof_coordinates": self.dof_coordinates()}
+
+    def dof_coordinates(self) -> np.ndarray:
+        """(n, dim): where each free dof sits in space."""
+        raise NotImplementedError
+
+    # (name, scalar components) of each field written to XDMF: Beck's w and theta, a vector
+    vertex_layout: ClassVar[Tuple[Tuple[str, Tuple[int, ...]], ...]] = ()
+
+    def spatial(self):
+        """(SpatialSystem, mesh, (system.n, n) map from the state to the system's free
+        vector) on this rank alone."""
+        raise NotImplementedError
+
+    def vertex_mesh(self) -> Tuple[np.ndarray, Optional[np.ndarray]]:
+        """(vertex coordinates (vertices, gdim), cells (cells, 3) of a triangle mesh, or None
+        for a line whose vertices are in order along it)."""
+        return self._vertex_map[0], self._vertex_map[1]
+
+    def vertex_fields(self, x: np.ndarray, v: np.ndarray) -> Dict[str, np.ndarray]:
+        """{field name: (times, vertices[, components])} of the states x, v (times, n): each
+        field and its velocity (`<name>_dot`) at the mesh's vertices (what XDMF stores)."""
+        out = {}
+        for (name, _), rows in zip(self.vertex_layout, self._vertex_map[2]):
+            for key, state in ((name, x), (f"{name}_dot", v)):
+                values = np.einsum("vcn,tn->tvc", rows, np.asarray(state))
+                out[key] = values[..., 0] if values.shape[-1] == 1 else values
+        return out
+
+    @functools.cached_property
+    def _vertex_map(self):
+        """(points, cells or None, per field a (vertices, components, n) map from the state to
+        its values at the vertices; a constrained vertex has the value 0)."""
+        system, msh, full = self.spatial()
+        gdim = msh.geometry.dim
+        points = msh.geometry.x[:, :gdim]
+        cells = None
+        if msh.topology.dim == 1:
+            points = points[np.argsort(points[:, 0])]
+        else:
+            cells = msh.geometry.dofmap.array.reshape(-1, 3).astype(np.int64)
+        size = float(np.abs(points).max(initial=1.0))
+        maps = []
+        for _, components in self.vertex_layout:
+            rows = np.zeros((len(points), len(components), self.n))
+            for c, component in enumerate(components):
+                mine = np.flatnonzero(system.field == component)
+                where = system.coordinates[mine, :gdim]
+                for i, point in enumerate(points):
+                    hit = mine[np.abs(where - point).max(axis=1) <= 1e-12 * size]
+                    if len(hit):
+                        rows[i, c] = full[hit[0]]
+            maps.append(rows)
+        return points, cells, maps
 
     def default_start(self) -> Optional[np.ndarray]:
         """The free dofs of the default start field computed in the discrete space (None:
@@ -116,6 +194,8 @@ class Beck(ContinuumScene):
                               "a tip follower load (flutter at P = 20.05 EI/L^2)")
     size_field: ClassVar[str] = "elements"
     field_names: ClassVar[Tuple[str, ...]] = ("w", "theta")
+    vertex_layout: ClassVar[Tuple[Tuple[str, Tuple[int, ...]], ...]] = (("w", (0,)),
+                                                                        ("theta", (1,)))
     default_v0_fields: ClassVar[Tuple[str, ...]] = ("0", "0")
     default_start_text: ClassVar[str] = ("the static deflection under a uniform load, "
                                          "tip 0.01 L")
@@ -130,7 +210,7 @@ class Beck(ContinuumScene):
 
     @property
     def n(self) -> int:  # type: ignore[override]
-        return int(self.elements) * int(self.degree)
+        return self._free_dofs(int(self.elements) * int(self.degree), range(1, 5))
 
     def validate(self) -> None:
         for name in ("EI", "rhoA", "kGA", "L"):
@@ -191,6 +271,18 @@ class Beck(ContinuumScene):
         w = np.linalg.solve(condensed.K_el, condensed.M @ np.ones(self.n))
         return 0.01 * self.L * w / np.abs(w).max()
 
+    def dof_coordinates(self) -> np.ndarray:
+        """(n, 1): x of each free w dof."""
+        column, condensed = self._column
+        return np.asarray(column.system.coordinates[condensed.w_index][:, :1], float)
+
+    def spatial(self):
+        column, condensed = self._column
+        full = np.zeros((column.system.n, self.n))  # (w, theta = G w) from w
+        full[condensed.w_index] = np.eye(self.n)
+        full[condensed.theta_index] = condensed.theta_map
+        return column.system, column.msh, full
+
     def theta(self, w: np.ndarray) -> np.ndarray:
         """The rotation's free dofs that follow the deflection's w."""
         return self.condensed.theta_map @ w
@@ -221,5 +313,83 @@ def _energy_projection(column, texts: Sequence[str],
     return np.linalg.solve(dense, values)
 
 
-for _cls in (Beck,):
+@dataclasses.dataclass(frozen=True)
+class Cauchy2D(ContinuumScene):
+    """Plane-strain Cauchy elasticity on the unit square, clamped on its boundary: Lame lam, mu,
+    the non-symmetric modulus delta, density rho; `elements` per side of Lagrange `degree`."""
+
+    name: ClassVar[str] = "cauchy2d"
+    default_T: ClassVar[float] = 1.0
+    summary: ClassVar[str] = ("Cauchy elasticity without major symmetry (no strain energy) on "
+                              "the clamped unit square, plane strain, DOLFINx triangles")
+    size_field: ClassVar[str] = "elements"
+    max_dofs: ClassVar[int] = 512  # dense: 450 free dofs (16 P1 elements a side) took 45 s
+    field_names: ClassVar[Tuple[str, ...]] = ("u1", "u2")
+    vertex_layout: ClassVar[Tuple[Tuple[str, Tuple[int, ...]], ...]] = (("u", (0, 1)),)
+    default_u0: ClassVar[Tuple[str, ...]] = ("0.01*sin(pi*x)*sin(pi*y)",
+                                             "0.01*sin(pi*x)*sin(2*pi*y)")
+    default_v0_fields: ClassVar[Tuple[str, ...]] = ("0", "0")
+
+    lam: float = 1.0
+    mu: float = 1.0
+    delta: float = 0.5
+    rho: float = 1.0
+    elements: int = 8
+    degree: int = 1
+
+    @property
+    def n(self) -> int:  # type: ignore[override]
+        k = int(self.elements) * int(self.degree)
+        # the interior Lagrange nodes, two components
+        return self._free_dofs(2 * max(k - 1, 0) ** 2, range(1, 4))
+
+    def validate(self) -> None:
+        for name in ("mu", "rho"):
+            require_positive(self, name)
+        if not self.lam + self.mu > 0:
+            raise InputError(f"lam={show(self.lam)} must exceed -mu={show(-self.mu)} (a "
+                             "positive symmetric part of C)")
+        if not 1 <= self.degree <= 3:
+            raise InputError(f"degree={show(self.degree)} must be from 1 to 3")
+        if not abs(self.delta) <= self.lam + self.mu:
+            raise InputError(f"delta={show(self.delta)}: beyond |delta| <= lam + mu = "
+                             f"{show(self.lam + self.mu)} the spectrum of the clamped square is "
+                             "not real (it flutters): not a motion to follow in time here")
+        super().validate()
+
+    @functools.cached_property
+    def _body(self):
+        from mpi4py import MPI
+
+        from fem_dual.continua.cauchy import CauchyElasticity, CauchyParameters
+
+        params = CauchyParameters(lam=self.lam, mu=self.mu, delta=self.delta, rho=self.rho,
+                                  elements=int(self.elements), degree=int(self.degree))
+        body = CauchyElasticity(params, MPI.COMM_SELF)  # (dense: every rank holds it whole)
+        return body, body.system.dense(limit=self.max_dofs)
+
+    def mass_matrix(self) -> np.ndarray:
+        return self._body[1][0]
+
+    def stiffness_matrix(self) -> np.ndarray:
+        return self._body[1][1]
+
+    def energy_stiffness(self) -> np.ndarray:
+        """The symmetric part of K (C_s): positive definite."""
+        K = self.stiffness_matrix()
+        return 0.5 * (K + K.T)
+
+    def interpolate(self, texts: Sequence[str]) -> Tuple[np.ndarray, Dict[str, object]]:
+        """The fields interpolated at the Lagrange nodes (clamped: 0 on the boundary)."""
+        return self._body[0].system.interpolate(list(texts), {}), {}
+
+    def spatial(self):
+        body = self._body[0]
+        return body.system, body.msh, np.eye(self.n)
+
+    def dof_coordinates(self) -> np.ndarray:
+        return np.asarray(self._body[0].system.coordinates[:, :2], float)
+
+
+for _cls in (Beck, Cauchy2D):
     register(_cls)
