@@ -312,7 +312,7 @@ class XdmfSeries:
         self.h5name = self.h5path.name
         with h5py.File(self.h5path, "r", locking=False) as h5:
             self.fields = {k: h5["steps"][k].shape[1:] for k in h5["steps"] if k != "time"}
-            self.restart = {k: h5["restart"][k].shape[1:] for k in h5["restart"]}
+            self.restart = {k: h5["restart"][k].shape[1:] for k in h5.get("restart", {})}
             steps = len(h5["steps/time"])
             self._times = h5["steps/time"][:]
             npts, ncells = len(h5["mesh/geometry"]), len(h5["mesh/topology"])

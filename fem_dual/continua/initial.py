@@ -71,8 +71,12 @@ def interpolate_fields(V: fem.FunctionSpace, texts: Sequence[str],
         if isinstance(value, float):
             part.x.array[:] = value
         else:
-            with quiet_jit_logging():
-                expr = fem.Expression(value, collapsed.element.interpolation_points())
+            try:
+                with quiet_jit_logging():
+                    expr = fem.Expression(value, collapsed.element.interpolation_points())
+            except Exception as exc:  # noqa: BLE001 -- FFCx/cffi's, e.g. a constant of inf
+                raise InputError(f"initial field {text[:60]!r} cannot be compiled "
+                                 f"({type(exc).__name__}; a constant beyond float64?)") from None
             part.interpolate(expr)
         u.x.array[parent] = part.x.array
     u.x.scatter_forward()

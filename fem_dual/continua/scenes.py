@@ -45,9 +45,12 @@ def split_fields(name: str, text, count: int) -> Tuple[str, ...]:
                 parts.append(text[start:i].strip())
                 start = i + 1
         parts.append(text[start:].strip())
-    if len(parts) != count or not all(parts):
+    if len(parts) != count:
         raise InputError(f"{name}={show(text)} has {len(parts)} expressions, expected {count} "
                          "(one per field component)")
+    if not all(parts):
+        raise InputError(f"{name}={show(text)}: expression {parts.index('') + 1} of {count} is "
+                         "empty")
     return tuple(parts)
 
 
@@ -90,7 +93,16 @@ class ContinuumScene(LinearScene):
             return self.default_start(), v0_, {"u0": "default", "v0": list(v)}
         u = split_fields("u0", self.default_u0 if u0 is None else u0, count)
         x0, notes = self.interpolate(u)
+        for name, texts, values in (("u0", u, x0), ("v0", v, v0_)):
+            if not np.isfinite(values).all():
+                raise InputError(f"{name}={', '.join(texts)!r} is not finite on the mesh")
         return x0, v0_, {"u0": list(u), "v0": list(v), **notes}
+
+    def field_parameters(self) -> Dict[str, float]:
+        """The scene's numbers the start fields' expressions may use by name."""
+        return {k: float(v) for k, v in self.parameters().items()
+                if isinstance(v, (int, float, np.integer, np.floating))
+                and not isinstance(v, bool)}
 
     @classmethod
     def listing(cls) -> str:
@@ -230,7 +242,12 @@ class Beck(ContinuumScene):
         params = BeckParameters(EI=self.EI, rhoA=self.rhoA, kGA=self.kGA, L=self.L, P=self.P,
                                 elements=int(self.elements), degree=int(self.degree))
         column = BeckColumn(params, MPI.COMM_SELF)  # (one-dimensional: dense on every rank)
-        return column, condense_rotation(column)
+        try:
+            return column, condense_rotation(column)
+        except np.linalg.LinAlgError:
+            raise InputError(f"EI={show(self.EI)}, kGA={show(self.kGA)}, L={show(self.L)}: the "
+                             "beam's stiffness is not positive definite in float64 (scales "
+                             "too far apart)") from None
 
     @property
     def condensed(self):
@@ -253,7 +270,7 @@ class Beck(ContinuumScene):
         deflection left 1e-4 of the state in the highest mode, omega = 1.2e6; the projection
         3e-6)."""
         column, condensed = self._column
-        full = _energy_projection(column, list(texts), {"L": self.L})
+        full = _energy_projection(column, list(texts), self.field_parameters())
         w = full[condensed.w_index]
         theta = full[condensed.theta_index]
         follows = condensed.theta_map @ w
@@ -304,7 +321,11 @@ def _energy_projection(column, texts: Sequence[str],
     field = ufl.as_vector(parts)
     trial = ufl.TrialFunction(column.W)
     rhs = ufl.replace(column.forms["k_el"], {trial: field})
-    b = fem_petsc.assemble_vector(compile_form(rhs))
+    try:
+        b = fem_petsc.assemble_vector(compile_form(rhs))
+    except Exception as exc:  # noqa: BLE001 -- FFCx/cffi's, e.g. a constant of inf
+        raise InputError(f"u0={', '.join(texts)!r} cannot be compiled ({type(exc).__name__}; "
+                         "a constant beyond float64?)") from None
     values = b.array[column.system.free].copy()
     b.destroy()
     K = column.system.assemble(column.forms["k_el"])
@@ -381,7 +402,7 @@ class Cauchy2D(ContinuumScene):
 
     def interpolate(self, texts: Sequence[str]) -> Tuple[np.ndarray, Dict[str, object]]:
         """The fields interpolated at the Lagrange nodes (clamped: 0 on the boundary)."""
-        return self._body[0].system.interpolate(list(texts), {}), {}
+        return self._body[0].system.interpolate(list(texts), self.field_parameters()), {}
 
     def spatial(self):
         body = self._body[0]

@@ -51,7 +51,7 @@ def _recurrence(sim: Simulation, state: LoopState, dt: float,
     for j in range(count):
         np.matmul(phi, Z[j], out=Z[j + 1])
     lost = sim.unresolved(Z[:-1], dt)
-    carried = Z[:-1] @ lend.T + lost
+    carried = Z[:-1] @ lend.T  # (what is dropped is carried beside: state.dropped)
     D = np.empty_like(Z)
     D[0] = state.d
     for j in range(count):
@@ -94,9 +94,10 @@ def _judge_chunk(config: RunConfig, state: LoopState, schedule: SlabSchedule,
     (None: none)."""
     count = len(Z) - 1
     t0, dt = schedule.current()
+    dropped = None if lost is None else state.dropped + np.cumsum(lost, axis=0) - lost
     est = estimate_slabs(vals, companion, None, psi, lost, weights, dt, config.T,
-                         output_request(config))
-    est.glob[:, -1] = D[1:]
+                         output_request(config), dropped=dropped)
+    est.glob[:, -1] = D[1:] if lost is None else D[1:] + dropped + lost
     t0s = (schedule.pos + schedule.length * np.arange(count)) * schedule.T / schedule.total
     ok = (all_finite(vals) & est.finite & np.isfinite(D[1:]).all(axis=1)
           & (est.err_local <= 1.0) & (est.err_global <= weights.tol.refuse_factor))
@@ -115,7 +116,8 @@ def _judge_chunk(config: RunConfig, state: LoopState, schedule: SlabSchedule,
                           est.err_global[:done], est.floor[:done], states,
                           est.scales[:done])
         weights.scale_x, weights.scale_v = est.scales[done - 1]
-    return (done, trial.state), Z[done], D[done], batch
+    after = state.dropped if lost is None or not done else dropped[done - 1] + lost[done - 1]
+    return (done, trial.state), Z[done], D[done], batch, after
 
 
 def _chunk(sim: Simulation, config: RunConfig, state: LoopState, schedule: SlabSchedule,
@@ -186,6 +188,7 @@ def batch_step(sim: "Simulation", config: RunConfig, state: LoopState, schedule:
     if problem:
         return 0, SolveError(f"slab {state.k} (t = {t0:g}): {problem}", slab=state.k)
     (done, schedule.state), z, d = bcast(comm, outcome[:3] if root else None)
+    dropped = bcast(comm, outcome[4] if root else None)
     # chunks grow while their slabs are all taken (the length settled), and start small again
     # after one stopped early (a controller still finding its length wastes little)
     state.chunk = state.chunk * 4 if done == count else FIRST_CHUNK
@@ -203,7 +206,7 @@ def batch_step(sim: "Simulation", config: RunConfig, state: LoopState, schedule:
         return taken, SolveError(f"slab {k} (t = {t0 + (taken - 1) * dt:g} .. "
                                  f"{t0 + taken * dt:g}): writing the output failed{where}: "
                                  f"{problem}", slab=k)
-    state.z, state.d = z, d
+    state.z, state.d, state.dropped = z, d, dropped
     return done, None
 
 

@@ -159,9 +159,11 @@ class Estimates:
 def estimate_slabs(vals: VertexValues, companion: VertexValues, algebraic: Optional[np.ndarray],
                psi: Optional[np.ndarray], lost: Optional[np.ndarray], weights: ErrorWeights,
                dt, T: float, output: Optional[Tuple[Any, int]] = None,
-               compiled: bool = True) -> Estimates:
+               compiled: bool = True, dropped: Optional[np.ndarray] = None) -> Estimates:
     """The estimates of consecutive slabs (values with a leading slab axis; lost (slabs, 2n)),
-    each slab's motion recorded in the weights before the next. With `output` (the scene and
+    each slab's motion recorded in the weights before the next. `dropped` (slabs, 2n): what the
+    zero base dropped before each slab, added to its global error as it is (a dropped mode is
+    gone from the answer for good, and no slab map carries it: they drop it again). With `output` (the scene and
     the order 2p of the vertex values), times between the vertices are asked for: the
     interpolation error there (`slab_interpolation_gaps`) must be within the tolerance too, and
     enters the controller's error at the vertices' order (a slab whose gap exceeds it is
@@ -170,7 +172,7 @@ def estimate_slabs(vals: VertexValues, companion: VertexValues, algebraic: Optio
     numpy below judges the rest."""
     # (the compiled loop judges a damped part per unit of time: runs with one take numpy)
     done = _compiled_estimates(vals, companion, algebraic, psi, lost, weights, dt,
-                               T) if compiled and lost is None else None
+                               T) if compiled and lost is None and dropped is None else None
     if done is not None:
         local, glob, scales, floor, err_local, err_global = done
         finite = np.ones(len(scales), dtype=bool)
@@ -185,9 +187,9 @@ def estimate_slabs(vals: VertexValues, companion: VertexValues, algebraic: Optio
         local += algebraic
     local *= ESTIMATE_SAFETY
     damped = None
-    if lost is not None:  # damped by the zero base: gone from the answer after the start
+    if lost is not None:  # dropped by the zero base: gone from the answer
         damped = np.zeros_like(local)
-        damped[:, 1:] = lost[:, None, :]
+        damped[:] = lost[:, None, :]  # (dropped at the start: vertex 0 lacks it too)
     scales = weights.running(vals.x, vals.v)
     # local errors at the round-off floor are not resolved: counted as such they would grow per
     # unit of time as slabs shrink and drive the lengths down to the minimum
@@ -207,6 +209,8 @@ def estimate_slabs(vals: VertexValues, companion: VertexValues, algebraic: Optio
                                                             scales))
             local = local + damped
         glob = local if psi is None else local + psi
+        if dropped is not None:
+            glob = glob + dropped[:, None, :]
         peak_glob = weights.peaks(glob)
         err_global = weights.weigh(peak_glob, scales)
         finite = np.isfinite(peak_local).all(axis=1) & np.isfinite(peak_glob).all(axis=1)

@@ -102,7 +102,8 @@ class GrowthBound:
 def judge(vals: VertexValues, companion: VertexValues, algebraic: Optional[np.ndarray],
           psi: Optional[np.ndarray], lost: Optional[np.ndarray], weights: ErrorWeights,
           bound: Optional[GrowthBound], t0: float, dt: float, T: float,
-          output: Optional[Tuple[Any, int]] = None) -> Verdict:
+          output: Optional[Tuple[Any, int]] = None,
+          dropped: Optional[np.ndarray] = None) -> Verdict:
     """The verdict on a solved slab on rank 0 from its values, its companion's, its algebraic
     error, the tangent of the carried error `psi` and the part `lost` that the zero base damps
     (fem_dual.integrate.estimate.estimate_slabs)."""
@@ -119,7 +120,7 @@ def judge(vals: VertexValues, companion: VertexValues, algebraic: Optional[np.nd
                        "per slab")
     one = (lambda a: None if a is None else a[None])
     est = estimate_slabs(batched(vals), batched(companion), one(algebraic), one(psi), one(lost),
-                         weights, dt, T, output)
+                         weights, dt, T, output, dropped=one(dropped))
     local, glob = est.local[0], est.glob[0]
     if not est.finite[0]:
         return Verdict("retry", None, "the error estimate is not finite")

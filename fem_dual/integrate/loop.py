@@ -125,6 +125,7 @@ class _Run:
         if resume:
             self.state.resume(self.comm, restart, self.acc, self.weights, self.schedule)
         self.rejected: List[Dict[str, Any]] = []
+        self.lost: Optional[np.ndarray] = None  # what the zero base drops on the slab solved
 
     def _resolved(self, dt: float) -> None:
         """SolveError when a linear slab of length dt is under-resolved (`check_resolution`)."""
@@ -168,13 +169,13 @@ class _Run:
             algebraic = sim.algebraic_error(z, vals)
             # (no error carried in: none to propagate, the estimate is the local one)
             psi = sim.tangent(z, d, t0, dt, vals) if d.any() else None
-            lost = sim.unresolved(z, dt)
+            lost = self.lost = sim.unresolved(z, dt)
             companion = sim.companion.solve_slab(z, t0, dt, start=sim)
             self.timings["estimate_s"] += time.perf_counter() - t2
             config = self.config
             verdict = judged(self.comm, lambda: judge(
                 vals, companion, algebraic, psi, lost, self.weights, self.bound, t0, dt,
-                config.T, output_request(config)))
+                config.T, output_request(config), None if lost is None else self.state.dropped))
             if verdict.action == "accept" and not sim.scene.linear:
                 verdict = volume_kept(sim, z, t0, dt, vals, verdict)
         except SolveError as exc:
@@ -243,13 +244,18 @@ class _Run:
                                 (weights.scale_x, weights.scale_v))
             for sink in self.sinks:
                 sink.add(slab)
-            return np.concatenate([vals.x[-1], vals.v[-1]]), verdict.estimate.glob[-1].copy()
+            carried = verdict.estimate.glob[-1].copy()
+            if self.lost is not None:  # (carried beside d: state.dropped)
+                carried -= state.dropped + self.lost
+            return np.concatenate([vals.x[-1], vals.v[-1]]), carried
         nxt, problem = on_root(self.comm, add)
         failure = _interruption(self.comm, schedule, k, self.config.T)
         shared = None
         if self.comm.rank == 0:
             shared = (state.z, state.d, problem) if problem else (*nxt, None)
         state.z, state.d, problem = bcast(self.comm, shared)
+        if self.lost is not None and not problem:
+            state.dropped = state.dropped + self.lost
         if problem:
             where = f" ({self.config.out})" if self.config.out is not None else ""
             return SolveError(f"slab {k} (t = {t0:g} .. {t0 + dt:g}): writing the output "

@@ -330,11 +330,14 @@ class Simulation:
         return None if self.comm.rank != 0 else np.column_stack([c[-1] for c in columns])
 
     def _dropped(self, r: np.ndarray, dt: float) -> np.ndarray:
-        """Modal start state(s) r without the modes the answer's slabs do not resolve, on the
-        zero base under a tolerance (the companion drops the same ones)."""
-        if self.base != "zero" or not self.adaptive:
+        """Modal start state(s) r without the modes the answer's slabs do not resolve on the
+        zero base (the companion drops the same ones): those turning more than RESOLVED_TURN x
+        p radians per cell under a tolerance, more than p on fixed slabs (which the zero base
+        damps anyway, not exactly: the companion then told their loss 5 % short)."""
+        if self.base != "zero":
             return r
-        return self.modal.drop(r, dt, *self.resolution, RESOLVED_TURN)
+        return self.modal.drop(r, dt, *self.resolution,
+                               RESOLVED_TURN if self.adaptive else 1.0)
 
     def unresolved(self, z0: np.ndarray, dt: float) -> Optional[np.ndarray]:
         """(2n,): the part of z0 in modes the slab does not resolve, which the zero base damps

@@ -27,6 +27,9 @@ class LoopState:
         self.k = 0
         self.z = np.concatenate([config.x0, config.v0])
         self.d = np.zeros_like(self.z)  # estimated global error of the state at the slab start
+        # what the zero base dropped so far (amplitudes per component): part of the global
+        # error for good, carried beside d (no slab map carries it)
+        self.dropped = np.zeros_like(self.z)
         self.lengths: List[float] = []
         self.batched = 0  # slabs taken in chunks from their slab maps (fem_dual.integrate.chunks)
         # slabs of the next chunk (before the limits of fem_dual.integrate.chunks): fixed slabs have their
