@@ -53,12 +53,14 @@ class Verdict(NamedTuple):
     """What becomes of a solved slab: `action` "accept", "retry" (shorter), "refuse" (the run
     cannot vouch for its answer) or "error" (the run ends); `err` the weighted local error per
     unit of time (the controller's, None where the slab was not estimated), `reason` why not
-    accepted, `estimate` the slab's error estimate (rank 0 only)."""
+    accepted, `estimate` the slab's error estimate (rank 0 only), `solver` whether the slab's
+    solve itself failed."""
 
     action: str
     err: Optional[float]
     reason: str
     estimate: Optional[SlabEstimate] = None
+    solver: bool = False
 
 
 def check_resolution(rate: Optional[float], dt: float, cells: int, degree: int) -> None:

@@ -63,6 +63,11 @@ def run_slabs(sim: "Simulation", config: RunConfig, progress: bool = False,
             continue
         t0, dt = schedule.current()
         values, verdict = run.step(t0, dt)  # answer, companion, tangent; judged
+        if run.solver_failed(verdict):
+            failure = run.refusal(verdict._replace(
+                action="error", reason=f"{verdict.reason}; it failed alike on "
+                f"{LINEAR_SOLVE_RETRIES} slabs, each half as long"), t0, dt)
+            break
         if verdict.action == "cut" or (verdict.action == "retry" and
                                        schedule.halve(step_factor(verdict.err, run.order))):
             run.rejected.append({"t0": t0, "dt": dt, "reason": verdict.reason})
@@ -75,6 +80,11 @@ def run_slabs(sim: "Simulation", config: RunConfig, progress: bool = False,
         state.settled = schedule.length == length
         failure = run.record(values, verdict, t0, dt)  # the sinks; the next start state
     return run.finish(failure)
+
+
+LINEAR_SOLVE_RETRIES = 6  # a linear slab whose solve failed this often in a row, each time on a
+# slab half as long, stops the run: a solve that fails on conditioning fails at every length (a
+# follower load of 1e9 on a beam halved 23 times, minutes of CG at its iteration limit each)
 
 
 class _Run:
@@ -126,6 +136,7 @@ class _Run:
             self.state.resume(self.comm, restart, self.acc, self.weights, self.schedule)
         self.rejected: List[Dict[str, Any]] = []
         self.lost: Optional[np.ndarray] = None  # what the zero base drops on the slab solved
+        self.failed_solves = 0  # linear slabs in a row whose solve failed
 
     def _resolved(self, dt: float) -> None:
         """SolveError when a linear slab of length dt is under-resolved (`check_resolution`)."""
@@ -145,6 +156,13 @@ class _Run:
             state.batched += taken
             failure = _interruption(self.comm, schedule, state.k - 1, self.config.T)
         return taken, failure
+
+    def solver_failed(self, verdict: Verdict) -> bool:
+        """Count a linear slab's failed solve (reset by any other verdict); True once
+        LINEAR_SOLVE_RETRIES of them came in a row."""
+        failed = self.sim.scene.linear and verdict.action == "retry" and verdict.solver
+        self.failed_solves = self.failed_solves + 1 if failed else 0
+        return self.failed_solves >= LINEAR_SOLVE_RETRIES
 
     def step(self, t0: float, dt: float) -> Tuple[Optional[VertexValues], Verdict]:
         """Solve the slab [t0, t0 + dt] from the current start state with its error estimate,
@@ -179,7 +197,7 @@ class _Run:
             if verdict.action == "accept" and not sim.scene.linear:
                 verdict = volume_kept(sim, z, t0, dt, vals, verdict)
         except SolveError as exc:
-            verdict = Verdict("retry", None, str(exc))
+            verdict = Verdict("retry", None, str(exc), solver=True)
         self.timings["solve_s"] += time.perf_counter() - tic
         return vals, verdict
 

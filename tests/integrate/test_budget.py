@@ -40,3 +40,16 @@ def test_fixed_slabs_have_no_budget():
 def test_bad_budget_is_refused(value, capsys):
     assert main(FAST + ["--max-slabs", value]) == 2
     assert f"max-slabs='{value}'" in capsys.readouterr().err
+
+
+def test_a_linear_solve_that_fails_at_every_length_stops_after_a_few_halvings():
+    """A solve that fails on conditioning fails on shorter slabs too: the run stops after
+    LINEAR_SOLVE_RETRIES of them in a row (a follower load of 1e9 on a beam was halved 23
+    times, minutes of CG at its iteration limit each)."""
+    from fem_dual.integrate.loop import LINEAR_SOLVE_RETRIES
+
+    config = RunConfig.create("ziegler", assembly="kronecker", rtol=1e-6,
+                              petsc={"ksp_max_it": "2"})
+    with pytest.raises(SolveError, match=f"failed alike on {LINEAR_SOLVE_RETRIES} slabs") as info:
+        run(config)
+    assert len(info.value.partial.solver["halved_slabs"]) == LINEAR_SOLVE_RETRIES - 1
