@@ -5,7 +5,8 @@ use, beside which fem-dual's continua are measured.
     .venv/bin/python benchmarks/newmark.py SYSTEM.npz [--T 1] [--target 1e-6]
         [--scheme newmark|alpha] [--rho-inf 0.8] [--steps 16]
 
-SYSTEM.npz is what ``SpatialSystem.export_npz`` writes (M, K, D in CSR, u0, v0). The reference is
+SYSTEM.npz is what ``SpatialSystem.export_npz`` writes (M, K, D in CSR, u0, v0), or the
+``<scene>_system.npz`` of a run's --out (dense M, K, D). The reference is
 the matrix exponential of the first-order system (dense, n <= 2000). The step count is doubled
 from --steps until the relative error at T is below --target; each row prints steps, wall time
 (factorisation included) and error.
@@ -139,10 +140,13 @@ def converge(M, D, K, u0, v0, times: Sequence[float], reference: np.ndarray, tar
 
 
 def load_npz(path: str):
-    """(M, D, K, u0, v0) from a ``SpatialSystem.export_npz`` file."""
+    """(M, D, K, u0, v0) from a ``SpatialSystem.export_npz`` file (CSR parts) or a run's
+    ``<scene>_system.npz`` (dense M, K, D)."""
     data = np.load(path)
 
     def csr(name):
+        if name in data:
+            return sps.csr_matrix(data[name])
         return sps.csr_matrix((data[f"{name}_data"], data[f"{name}_indices"],
                                data[f"{name}_indptr"]), shape=tuple(data[f"{name}_shape"]))
 
