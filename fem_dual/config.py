@@ -361,7 +361,7 @@ def _start_state(scene: Scene, x0, v0, u0=None) -> Tuple[np.ndarray, np.ndarray]
     scene from its start fields u0, v0 (expressions of the spatial coordinates)."""
     n = scene.n
     if scene.continuum and x0 is None:  # (x0 given: the free dofs' vector, as final.x)
-        x0_, v0_, _ = scene.start_state(u0, v0)
+        x0_, v0_ = scene.start_state(u0, v0)
     elif u0 is not None and x0 is not None:
         raise InputError("the start is given twice: u0 (fields) and x0 (the dofs' vector)")
     elif u0 is not None:

@@ -21,7 +21,7 @@ from fem_dual.errors import InputError
 from fem_dual.expression import parse_force
 from fem_dual.continua.dofs import leaf_spaces
 
-__all__ = ["field_expression", "interpolate_fields"]
+__all__ = ["field_expression", "interpolate_fields", "jit_input"]
 
 
 def field_expression(text: str, msh, parameters: Mapping[str, float]):
@@ -52,6 +52,17 @@ def field_expression(text: str, msh, parameters: Mapping[str, float]):
     return value
 
 
+def jit_input(what: str, build):
+    """build(): the JIT compilation of code made from the user's input (quietly); its failure
+    (FFCx's or the C compiler's: a constant of inf in the code) an InputError naming `what`."""
+    try:
+        with quiet_jit_logging():
+            return build()
+    except Exception as exc:  # noqa: BLE001 -- whatever FFCx, cffi or gcc raise
+        raise InputError(f"{what} cannot be compiled ({type(exc).__name__}; a constant beyond "
+                         "float64?)") from None
+
+
 def interpolate_fields(V: fem.FunctionSpace, texts: Sequence[str],
                        parameters: Optional[Mapping[str, float]] = None) -> np.ndarray:
     """The values of every local dof of V (``Function.x.array`` layout, ghosts included) of the
@@ -71,12 +82,8 @@ def interpolate_fields(V: fem.FunctionSpace, texts: Sequence[str],
         if isinstance(value, float):
             part.x.array[:] = value
         else:
-            try:
-                with quiet_jit_logging():
-                    expr = fem.Expression(value, collapsed.element.interpolation_points())
-            except Exception as exc:  # noqa: BLE001 -- FFCx/cffi's, e.g. a constant of inf
-                raise InputError(f"initial field {text[:60]!r} cannot be compiled "
-                                 f"({type(exc).__name__}; a constant beyond float64?)") from None
+            expr = jit_input(f"initial field {text[:60]!r}", lambda: fem.Expression(
+                value, collapsed.element.interpolation_points()))
             part.interpolate(expr)
         u.x.array[parent] = part.x.array
     u.x.scatter_forward()

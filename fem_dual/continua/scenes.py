@@ -15,6 +15,7 @@ Built in:
 """
 from __future__ import annotations
 
+import abc
 import dataclasses
 import functools
 from typing import ClassVar, Dict, Optional, Sequence, Tuple
@@ -56,8 +57,9 @@ def split_fields(name: str, text, count: int) -> Tuple[str, ...]:
 
 @dataclasses.dataclass(frozen=True)
 class ContinuumScene(LinearScene):
-    """A linear scene from a spatial discretisation. Subclasses give `field_names`, the default
-    start fields, and `_discrete` (M, K, D and the interpolation of start fields)."""
+    """A linear scene from a spatial discretisation. Subclasses give `field_names`,
+    `vertex_layout`, the default start fields, M and K, and the abstract methods below (the
+    start fields' vector, the dofs' coordinates, the spatial system)."""
 
     continuum: ClassVar[bool] = True
     field_names: ClassVar[Tuple[str, ...]] = ()
@@ -83,20 +85,21 @@ class ContinuumScene(LinearScene):
                              f"dense path of scene {self.name}")
         return n
 
-    def start_state(self, u0, v0) -> Tuple[np.ndarray, np.ndarray, Dict[str, object]]:
-        """(x0, v0, notes) from the start fields' expressions (None: the defaults; u0 None:
+    def start_state(self, u0, v0) -> Tuple[np.ndarray, np.ndarray]:
+        """(x0, v0) from the start fields' expressions (None: the defaults; u0 None:
         `default_start` where the scene has one)."""
         count = len(self.field_names)
         v = split_fields("v0", self.default_v0_fields if v0 is None else v0, count)
-        v0_, _ = self.interpolate(v)
-        if u0 is None and self.default_start() is not None:
-            return self.default_start(), v0_, {"u0": "default", "v0": list(v)}
-        u = split_fields("u0", self.default_u0 if u0 is None else u0, count)
-        x0, notes = self.interpolate(u)
-        for name, texts, values in (("u0", u, x0), ("v0", v, v0_)):
+        fields = [("v0", v, self.interpolate(v))]
+        x0 = self.default_start() if u0 is None else None
+        if x0 is None:
+            u = split_fields("u0", self.default_u0 if u0 is None else u0, count)
+            x0 = self.interpolate(u)
+            fields.append(("u0", u, x0))
+        for name, texts, values in fields:
             if not np.isfinite(values).all():
                 raise InputError(f"{name}={', '.join(texts)!r} is not finite on the mesh")
-        return x0, v0_, {"u0": list(u), "v0": list(v), **notes}
+        return x0, fields[0][2]
 
     def field_parameters(self) -> Dict[str, float]:
         """The scene's numbers the start fields' expressions may use by name."""
@@ -111,8 +114,8 @@ class ContinuumScene(LinearScene):
         params = ", ".join(f"{k}={v}" for k, v in defaults.parameters().items()
                            if k not in ("A", "B", "weights"))
         start = cls.default_start_text or ", ".join(cls.default_u0)  # (no mesh built)
-        return (f"{cls.name}: {cls.summary}\n  fields ({', '.join(cls.field_names)}): n={defaults.n}"
-                f" free dofs  T={cls.default_T:g}  --u0 default: {start}  --v0 default: "
+        return (f"{cls.name}: {cls.summary}\n  fields ({', '.join(cls.field_names)}): "
+                f"n={defaults.n} free dofs  T={cls.default_T:g}  --u0 default: {start}  --v0 default: "
                 f"{', '.join(cls.default_v0_fields)}\n  parameters: {params}")
 
     default_start_text: ClassVar[str] = ""
@@ -124,17 +127,17 @@ class ContinuumScene(LinearScene):
                 "D": self.damping_matrix(), "u0": np.asarray(x0, float),
                 "v0": np.asarray(v0, float), "dof_coordinates": self.dof_coordinates()}
 
+    @abc.abstractmethod
     def dof_coordinates(self) -> np.ndarray:
         """(n, dim): where each free dof sits in space."""
-        raise NotImplementedError
 
     # (name, scalar components) of each field written to XDMF: Beck's w and theta, a vector
     vertex_layout: ClassVar[Tuple[Tuple[str, Tuple[int, ...]], ...]] = ()
 
+    @abc.abstractmethod
     def spatial(self):
         """(SpatialSystem, mesh, (system.n, n) map from the state to the system's free
         vector) on this rank alone."""
-        raise NotImplementedError
 
     def vertex_mesh(self) -> Tuple[np.ndarray, Optional[np.ndarray]]:
         """(vertex coordinates (vertices, gdim), cells (cells, 3) of a triangle mesh, or None
@@ -182,9 +185,9 @@ class ContinuumScene(LinearScene):
         `default_u0`'s expressions)."""
         return None
 
-    def interpolate(self, texts: Sequence[str]) -> Tuple[np.ndarray, Dict[str, object]]:
-        """(the state vector of the fields `texts`, notes for the JSON)."""
-        raise NotImplementedError
+    @abc.abstractmethod
+    def interpolate(self, texts: Sequence[str]) -> np.ndarray:
+        """The state vector of the fields `texts` (one expression per component)."""
 
     @property
     def default_x0(self):  # type: ignore[override]
@@ -226,9 +229,7 @@ class Beck(ContinuumScene):
 
     def validate(self) -> None:
         for name in ("EI", "rhoA", "kGA", "L"):
-            require_positive(self, name)
-        if not 1 <= self.degree <= 4:
-            raise InputError(f"degree={show(self.degree)} must be from 1 to 4")
+            require_positive(self, name)  # (elements and degree: `n`, checked first)
         super().validate()
 
     @functools.cached_property
@@ -263,20 +264,15 @@ class Beck(ContinuumScene):
         """The elastic stiffness K_c: positive definite under any load."""
         return self.condensed.K_el
 
-    def interpolate(self, texts: Sequence[str]) -> Tuple[np.ndarray, Dict[str, object]]:
-        """The elastic-energy projection of the fields (w, theta) onto the discrete space:
-        K_el u = k_el(u_field, .), so that the modes the mesh resolves poorly carry what the
-        field's energy puts in them, not the interpolation's residue (interpolating the static
-        deflection left 1e-4 of the state in the highest mode, omega = 1.2e6; the projection
-        3e-6)."""
+    def interpolate(self, texts: Sequence[str]) -> np.ndarray:
+        """The deflection's part of the elastic-energy projection of the fields (w, theta) onto
+        the discrete space, K_el u = k_el(u_field, .), so that the modes the mesh resolves
+        poorly carry what the field's energy puts in them, not the interpolation's residue
+        (interpolating the static deflection left 1e-4 of the state in the highest mode,
+        omega = 1.2e6; the projection 3e-6). Theta follows w."""
         column, condensed = self._column
-        full = _energy_projection(column, list(texts), self.field_parameters())
-        w = full[condensed.w_index]
-        theta = full[condensed.theta_index]
-        follows = condensed.theta_map @ w
-        gap = float(np.abs(theta - follows).max() / max(np.abs(follows).max(), 1e-300))
-        return w, {"theta0_gap": gap if np.abs(follows).max() > 0 else
-                   float(np.abs(theta).max())}
+        return _energy_projection(column, list(texts), self.field_parameters())[
+            condensed.w_index]
 
     def default_start(self) -> Optional[np.ndarray]:
         """The discrete static deflection under a uniform transverse load (K_el w = the load's
@@ -300,10 +296,6 @@ class Beck(ContinuumScene):
         full[condensed.theta_index] = condensed.theta_map
         return column.system, column.msh, full
 
-    def theta(self, w: np.ndarray) -> np.ndarray:
-        """The rotation's free dofs that follow the deflection's w."""
-        return self.condensed.theta_map @ w
-
 
 def _energy_projection(column, texts: Sequence[str],
                        parameters: Dict[str, float]) -> np.ndarray:
@@ -312,7 +304,7 @@ def _energy_projection(column, texts: Sequence[str],
     from dolfinx.fem import petsc as fem_petsc
 
     from fem_dual.continua.dofs import gather_csr
-    from fem_dual.continua.initial import field_expression
+    from fem_dual.continua.initial import field_expression, jit_input
     from fem_dual.continua.system import compile_form
 
     parts = [field_expression(t, column.msh, parameters) for t in texts]
@@ -321,11 +313,8 @@ def _energy_projection(column, texts: Sequence[str],
     field = ufl.as_vector(parts)
     trial = ufl.TrialFunction(column.W)
     rhs = ufl.replace(column.forms["k_el"], {trial: field})
-    try:
-        b = fem_petsc.assemble_vector(compile_form(rhs))
-    except Exception as exc:  # noqa: BLE001 -- FFCx/cffi's, e.g. a constant of inf
-        raise InputError(f"u0={', '.join(texts)!r} cannot be compiled ({type(exc).__name__}; "
-                         "a constant beyond float64?)") from None
+    b = fem_petsc.assemble_vector(jit_input(f"u0={', '.join(texts)!r}",
+                                            lambda: compile_form(rhs)))
     values = b.array[column.system.free].copy()
     b.destroy()
     K = column.system.assemble(column.forms["k_el"])
@@ -370,8 +359,6 @@ class Cauchy2D(ContinuumScene):
         if not self.lam + self.mu > 0:
             raise InputError(f"lam={show(self.lam)} must exceed -mu={show(-self.mu)} (a "
                              "positive symmetric part of C)")
-        if not 1 <= self.degree <= 3:
-            raise InputError(f"degree={show(self.degree)} must be from 1 to 3")
         if not abs(self.delta) <= self.lam + self.mu:
             raise InputError(f"delta={show(self.delta)}: beyond |delta| <= lam + mu = "
                              f"{show(self.lam + self.mu)} the spectrum of the clamped square is "
@@ -400,9 +387,9 @@ class Cauchy2D(ContinuumScene):
         K = self.stiffness_matrix()
         return 0.5 * (K + K.T)
 
-    def interpolate(self, texts: Sequence[str]) -> Tuple[np.ndarray, Dict[str, object]]:
+    def interpolate(self, texts: Sequence[str]) -> np.ndarray:
         """The fields interpolated at the Lagrange nodes (clamped: 0 on the boundary)."""
-        return self._body[0].system.interpolate(list(texts), self.field_parameters()), {}
+        return self._body[0].system.interpolate(list(texts), self.field_parameters())
 
     def spatial(self):
         body = self._body[0]

@@ -163,11 +163,11 @@ def estimate_slabs(vals: VertexValues, companion: VertexValues, algebraic: Optio
     """The estimates of consecutive slabs (values with a leading slab axis; lost (slabs, 2n)),
     each slab's motion recorded in the weights before the next. `dropped` (slabs, 2n): what the
     zero base dropped before each slab, added to its global error as it is (a dropped mode is
-    gone from the answer for good, and no slab map carries it: they drop it again). With `output` (the scene and
-    the order 2p of the vertex values), times between the vertices are asked for: the
-    interpolation error there (`slab_interpolation_gaps`) must be within the tolerance too, and
-    enters the controller's error at the vertices' order (a slab whose gap exceeds it is
-    retried shorter, as one whose local error does). In compiled code where it is available
+    gone from the answer for good, and no slab map carries it: they drop it again). With
+    `output` (the scene and the order 2p of the vertex values), times between the vertices are
+    asked for: the interpolation error there (`slab_interpolation_gaps`) must be within the
+    tolerance too, and enters the controller's error at the vertices' order (a slab whose gap
+    exceeds it is retried shorter, as one whose local error does). In compiled code where it is available
     (fem_dual.native's `estimate`, `compiled`), for finite values and positive weights; the
     numpy below judges the rest."""
     # (the compiled loop judges a damped part per unit of time: runs with one take numpy)

@@ -336,8 +336,7 @@ class Simulation:
         damps anyway, not exactly: the companion then told their loss 5 % short)."""
         if self.base != "zero":
             return r
-        return self.modal.drop(r, dt, *self.resolution,
-                               RESOLVED_TURN if self.adaptive else 1.0)
+        return self.modal.drop(r, dt, *self._drop_rule())
 
     def unresolved(self, z0: np.ndarray, dt: float) -> Optional[np.ndarray]:
         """(2n,): the part of z0 in modes the slab does not resolve, which the zero base damps
@@ -345,8 +344,12 @@ class Simulation:
         states (slabs, 2n) at once."""
         if self.modal is None or self.base != "zero":
             return None
-        return self.modal.unresolved(z0, dt, *self.resolution,
-                                     RESOLVED_TURN if self.adaptive else 1.0)
+        return self.modal.unresolved(z0, dt, *self._drop_rule())
+
+    def _drop_rule(self) -> Tuple[int, int, float]:
+        """(cells, degree, turn) of the modes the zero base drops: those turning more than
+        turn x degree radians per cell of the answer's slabs."""
+        return (*self.resolution, RESOLVED_TURN if self.adaptive else 1.0)
 
     def verify(self) -> Optional[str]:
         """Why the last slab solve cannot be trusted although it converged, or None."""

@@ -274,7 +274,7 @@ class XdmfSink:
                         raise InputError(f"--out {self.out}: {stale.name} was not written by "
                                          "fem-dual; move it away or choose another directory")
                     stale.unlink()
-        if getattr(config.scene, "continuum", False):
+        if config.scene.continuum:
             # a continuum: its semi-discrete system, to check against, and its fields in space
             write_arrays(self.out / f"{name}_system.npz",
                          config.scene.system_arrays(config.x0, config.v0))
