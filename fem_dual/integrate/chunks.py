@@ -168,7 +168,8 @@ def batch_step(sim: "Simulation", config: RunConfig, state: LoopState, schedule:
     if (sim.superposition is None or sim.companion.superposition is None
             or not state.settled):
         return 0, None
-    remaining = (schedule.total - schedule.pos) // schedule.length
+    # (on the fine grid the last slab, whose dt reaches T exactly, is the slab loop's)
+    remaining = (schedule.total - schedule.pos - schedule.fine) // schedule.length
     if remaining < 2:
         return 0, None
     try:

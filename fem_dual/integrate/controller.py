@@ -3,8 +3,8 @@
 Hairer-Norsett-Wanner, as in scipy's `_ivp/rk.py` and SUNDIALS: from the weighted local error per
 unit of time `err` of an accepted or rejected slab (`fem_dual.integrate.estimate`), the next
 length is the slab's times `step_factor(err)` (about err^(-1/(2p)), kept within
-[MIN_SHRINK, MAX_GROWTH]); `SlabSchedule` rounds it to a power of two of its unit, remembers
-rejected lengths, and meets the end of [0, T] without an odd last slab.
+[MIN_SHRINK, MAX_GROWTH]); `SlabSchedule` rounds it down to a length of its grid (four lengths
+an octave under a tolerance, powers of two for fixed slabs) and remembers rejected lengths.
 """
 from __future__ import annotations
 
@@ -23,6 +23,12 @@ SAFETY = 0.9
 MAX_GROWTH = 4.0
 MIN_SHRINK = 0.125
 ADAPTIVE_LEVELS = 40  # --rtol: the shortest slab is T / 2^40
+# --rtol: lengths an octave (SlabSchedule). A linear scene pays a superposition basis for each
+# length it meets twice: column links=6 at --rtol 1e-4 / 1e-8 took 0.14 / 0.54 s on powers of
+# two (error 3e-3 / 1.4e-3 x rtol x scale), 0.29 / 0.73 s on two an octave (1.0e-2 / 5.4e-3),
+# 0.38 / 1.15 s on four (1.4e-2 / 9.5e-3)
+NONLINEAR_PER_OCTAVE = 1
+LINEAR_PER_OCTAVE = 2
 
 
 def step_factor(err: Optional[float], order: int) -> float:
@@ -57,8 +63,9 @@ def schedule_for(config: RunConfig, cells: int, rate: float) -> SlabSchedule:
     a nonlinear one)."""
     if config.rtol is None:
         return SlabSchedule(config.T, config.slab_count, config.max_halvings, shrinks=False)
+    per_octave = LINEAR_PER_OCTAVE if config.scene.linear else NONLINEAR_PER_OCTAVE
     return SlabSchedule(config.T, 1, ADAPTIVE_LEVELS,
-                        first=initial_fraction(rate, config.T, cells))
+                        first=initial_fraction(rate, config.T, cells), per_octave=per_octave)
 
 
 CUT_RESOLUTION = 1e-9  # a cut slab ends this fraction of its length before the cut, at most
@@ -67,14 +74,43 @@ KINK_AT_START = 1e-6  # a kink this close to a slab's start (fraction of its len
 MAX_UNITS = 2 ** 52  # positions stay exact in float64 (t0 = pos T / total): refinement stops
 FIRST_PATIENCE = 4  # slabs a rejected length is not tried again, after its first rejection
 MAX_PATIENCE = 256  # ... doubled after each repeated rejection up to this
+FINE_SHRINK = 0.8  # a rejected slab of a fine grid is at most this long next (1/2 for powers
+# of two)
+
+
+def grid_floor(units: np.ndarray, per_octave: int = 1) -> np.ndarray:
+    """The longest length of the grid at most `units` (>= 1, floats): the lengths m 2^k with m
+    in [q, 2q) for q = `per_octave` (a power of two: 1 gives the powers of two, 4 the lengths
+    4, 5, 6, 7 times 2^k, steps of 1.14-1.25), and the integers below q. Vectorised; int64."""
+    units = np.asarray(units, dtype=float)
+    shift = int(per_octave).bit_length() - 1
+    k = np.maximum(np.floor(np.log2(units)).astype(np.int64) - shift, 0)
+    m = np.floor(units / np.left_shift(np.int64(1), k).astype(float)).astype(np.int64)
+    return np.left_shift(m, k)
+
+
+def _reaching(t0: float, T: float) -> float:
+    """The dt with t0 + dt == T in floats (t0 < T)."""
+    dt = T - t0
+    while t0 + dt < T:
+        dt = math.nextafter(dt, math.inf)
+    while t0 + dt > T:
+        dt = math.nextafter(dt, -math.inf)
+    return dt
 
 
 class SlabSchedule:
     """Slabs of [0, T]: nominally `slabs` equal ones, each cut at most `max_halvings` times
-    (minimum length T / (slabs 2^max_halvings)). Lengths are powers of two of that minimum, so
-    equal lengths recur (linear scenes reuse their slab maps); a slab grows back after a success
-    by the factor its caller allows, never beyond the nominal length, and only to a length its
-    start position is a multiple of (so the end of [0, T] is met without an odd last slab).
+    (minimum length T / (slabs 2^max_halvings)). A slab grows back after a success by the
+    factor its caller allows, never beyond the nominal length. Lengths lie on a grid of that
+    minimum unit, so equal lengths recur (linear scenes reuse their slab maps):
+
+    - powers of two, and only lengths their start position is a multiple of (`aligned`: the
+      end of [0, T] is met without an odd last slab): fixed slabs;
+    - a finer grid (`per_octave` > 1, `grid_floor`), not aligned: the last slab is short where
+      it meets T. Lengths chosen by a tolerance. With powers of two the local
+      error, about dt^(2p+1), jumps by 2^(2p+1) between neighbouring lengths (512 at p = 4), so
+      the accepted errors lay up to that far below the tolerance; a step of 1.25 is 7.5.
 
     A rejected length is remembered (`ceiling`): the slabs grow back to it only after `wait`
     accepted slabs, a wait that doubles each time the same length is rejected again (up to
@@ -92,26 +128,30 @@ class SlabSchedule:
         T: horizon.
         slabs: number of nominal slabs.
         max_halvings: how often a nominal slab may be halved.
-        first: the first slab's length as a fraction of the nominal one (rounded down to a
-            power of two).
+        first: the first slab's length as a fraction of the nominal one (rounded down to the
+            grid).
         shrinks: whether an accepted slab's factor below 1 shortens the next one (lengths
             chosen by a tolerance); fixed slabs keep their length until one is rejected (a slab
             accepted close to the tolerance made two half slabs every few dozen slabs).
+        per_octave: lengths an octave of the grid (`grid_floor`; 1: powers of two).
     """
 
     STATE_SIZE = 7  # len(state)
 
     def __init__(self, T: float, slabs: int, max_halvings: int = 0, first: float = 1.0,
-                 shrinks: bool = True):
+                 shrinks: bool = True, per_octave: int = 1):
         self.T, self.shrinks = T, shrinks
+        self.per_octave = per_octave  # the grid of lengths (grid_floor)
+        self.fine = per_octave > 1
         self.nominal = 2**max_halvings
         self.total = slabs * self.nominal
         self.pos = 0
-        self.length = self._power_of_two_at_most(self.nominal * min(max(first, 0.0), 1.0))
+        self.length = self._grid_at_most(self.nominal * min(max(first, 0.0), 1.0))
         self.ceiling = 0  # units; 0: no rejected length to keep below
         self.wait = 0  # accepted slabs before the ceiling may be tried again
         self.patience = 0  # the wait after the next rejection at the ceiling (halved)
-        self.aligned = 1  # 0 after a cut: lengths no longer divide their start positions
+        # 0 on the fine grid and after a cut: lengths no longer divide their start positions
+        self.aligned = 0 if self.fine else 1
         self.resume = 0  # after a cut: the length the cut slab had, taken up again after it
 
     @property
@@ -125,29 +165,44 @@ class SlabSchedule:
         (self.pos, self.length, self.ceiling, self.wait, self.patience, self.aligned,
          self.resume) = (int(a) for a in value)
 
-    def _power_of_two_at_most(self, units: float) -> int:
-        units = min(max(units, 1.0), float(self.nominal))
-        return 1 << int(math.floor(math.log2(units)))
+    def _grid_at_most(self, units: float) -> int:
+        return int(grid_floor(min(max(units, 1.0), float(self.nominal)), self.per_octave))
+
+    def _kept(self, factor: np.ndarray) -> np.ndarray:
+        """The factors an accepted slab's successor is scaled by: below 1 only where the slab
+        shrinks (`shrinks`), and then only below SAFETY (a slab accepted within the tolerance
+        keeps its length: rounded down to the grid, a factor of 0.95 shortened it by a step of
+        20 % or a half, and the lengths alternated between two, each with its own slab map)."""
+        if not self.shrinks:
+            return np.maximum(factor, 1.0)
+        return np.where(factor >= SAFETY, np.maximum(factor, 1.0), factor)
+
+    def _below(self, units: int) -> int:
+        """The longest length of the grid shorter than `units` (> 1)."""
+        return units // 2 if not self.fine else self._grid_at_most(units - 1)
 
     def done(self) -> bool:
         return self.pos >= self.total
 
     def current(self) -> Tuple[float, float]:
-        """(t0, dt) of the slab to solve next."""
+        """(t0, dt) of the slab to solve next. On the fine grid the last slab's dt is the one
+        whose t0 + dt is T in floats (an end at T less an ulp left T outside the motion)."""
         length = min(self.length, self.total - self.pos)
-        return self.pos * self.T / self.total, length * self.T / self.total
+        t0 = self.pos * self.T / self.total
+        if self.fine and self.pos + length >= self.total:
+            return t0, _reaching(t0, self.T)
+        return t0, length * self.T / self.total
 
     def accept(self, factor: float = 2.0) -> None:
         """Advance past the current slab; the next one is at most `factor` times as long."""
         self.pos += min(self.length, self.total - self.pos)
-        length = self._power_of_two_at_most(self.length * (factor if self.shrinks
-                                                          else max(factor, 1.0)))
+        length = self._grid_at_most(self.length * float(self._kept(np.float64(factor))))
         if self.ceiling and self.length >= self.ceiling:  # the rejected length passed now
             self.ceiling, self.patience = 0, self.patience // 2
         elif self.ceiling:
             self.wait = max(self.wait - 1, 0)
             if self.wait:
-                length = min(length, self.ceiling // 2)
+                length = min(length, self._below(self.ceiling))
         if self.resume:  # the slab was cut at a kink: no verdict on the length it had
             length, self.resume = max(length, self.resume), 0
         while self.aligned and length > 1 and self.pos % length:
@@ -198,9 +253,10 @@ class SlabSchedule:
         Vectorised (a chunk of hundreds of equal slabs of a linear scene took a millisecond
         slab by slab, 2.5 ms of a 10 ms run); the same states as `accept`."""
         factors = np.asarray(factors, dtype=float)
-        if not self.aligned or not len(factors):
+        if not len(factors):
             return self.accept_each(factors)
-        if self.ceiling and self.length >= self.ceiling:  # the first slab clears the ceiling
+        if self.resume or (self.ceiling and self.length >= self.ceiling):
+            # the first slab takes up a cut slab's length or clears the ceiling
             length = self.length
             first = self.accept_each(factors[:1])
             if self.length != length or len(factors) == 1:
@@ -210,14 +266,17 @@ class SlabSchedule:
         length = self.length
         wait = np.maximum(self.wait - k, 0) if self.ceiling else np.full(len(k), self.wait)
         pos = np.minimum(self.pos + k * length, self.total)  # (the last slab may be short)
-        scaled = length * (factors if self.shrinks else np.maximum(factors, 1.0))
+        scaled = length * self._kept(factors)
         with np.errstate(divide="ignore", invalid="ignore"):
             units = np.clip(np.nan_to_num(scaled, nan=1.0), 1.0, float(self.nominal))
-            candidate = np.left_shift(1, np.floor(np.log2(units)).astype(np.int64))
+            candidate = grid_floor(units, self.per_octave)
         if self.ceiling:  # below a rejected length while the wait lasts
-            candidate = np.where(wait > 0, np.minimum(candidate, self.ceiling // 2), candidate)
-        lowest = pos & -pos  # the largest power of two dividing pos (pos > 0)
-        candidate = np.maximum(np.minimum(candidate, np.where(pos > 0, lowest, candidate)), 1)
+            candidate = np.where(wait > 0, np.minimum(candidate, self._below(self.ceiling)),
+                                 candidate)
+        if self.aligned:
+            lowest = pos & -pos  # the largest power of two dividing pos (pos > 0)
+            candidate = np.minimum(candidate, np.where(pos > 0, lowest, candidate))
+        candidate = np.maximum(candidate, 1)
         changed = np.flatnonzero(candidate != length)
         count = int(changed[0]) + 1 if len(changed) else len(factors)
         self.pos, self.length = int(pos[count - 1]), int(candidate[count - 1])
@@ -229,8 +288,8 @@ class SlabSchedule:
         return states
 
     def halve(self, factor: float = 0.5) -> bool:
-        """Shorten the current slab to at most `factor` (at most 1/2) of its length; False when
-        it is already at the minimum length."""
+        """Shorten the current slab to at most `factor` of its length (at most 1/2 on powers of
+        two, FINE_SHRINK on the fine grid); False when it is already at the minimum length."""
         if self.length == 1:
             return False
         if self.length == self.ceiling:  # rejected again after the wait: wait longer
@@ -238,5 +297,7 @@ class SlabSchedule:
         else:
             self.patience = max(self.patience, FIRST_PATIENCE)
         self.ceiling, self.wait = self.length, self.patience
-        self.length = self._power_of_two_at_most(self.length * min(factor, 0.5))
+        shrink = FINE_SHRINK if self.fine else 0.5
+        self.length = min(self._grid_at_most(self.length * min(factor, shrink)),
+                          self._below(self.length))
         return True

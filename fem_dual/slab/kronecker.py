@@ -36,7 +36,8 @@ from scipy.sparse import csgraph
 from fem_dual.errors import SolveError
 from fem_dual.slab.recovery import VertexValues, times_last
 from fem_dual.slab.petsc_solvers import check_true_residual
-from fem_dual.slab.superposition import checked, first, refused, select, share, stable_or_raise
+from fem_dual.slab.superposition import (Bases, checked, first, refused, select,
+                                         stable_or_raise)
 
 __all__ = ["TimeMatrices", "KroneckerProblem", "KroneckerSolver", "KroneckerSampler",
            "KroneckerSuperposition", "KRONECKER_DEFAULTS"]
@@ -513,7 +514,7 @@ def probes(blocks: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     return np.array(starts), np.array(gathers)
 
 
-class KroneckerSuperposition:
+class KroneckerSuperposition(Bases):
     """Slabs of a Kronecker problem from its 2n unit start states (see fem_dual.slab.superposition):
     x, v, xi, eta at the vertices are linear in z = (x0, v0), H_d follows from them. A problem
     that decouples into blocks (modal coordinates) solves 2 x its largest block probes
@@ -533,10 +534,6 @@ class KroneckerSuperposition:
             self.starts, self.gathers = starts, gathers
         else:  # coupled: the unit start states, a dense basis
             self.starts, self.gathers = np.eye(2 * n), None
-
-    def share(self, dt: float) -> None:
-        """The basis of slabs of length dt on every rank. Collective."""
-        share(self.problem.comm, self._bases, self._shared, dt)
 
     @staticmethod
     def solves_per_basis(problem: KroneckerProblem) -> int:

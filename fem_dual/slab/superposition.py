@@ -12,7 +12,7 @@ of a run with equal slabs, plus one for a shorter last slab.
 """
 from __future__ import annotations
 
-from typing import Dict, Optional, Tuple
+from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
 
@@ -108,7 +108,25 @@ def checked(bases: dict, dt: float, check) -> None:
         raise
 
 
-class Superposition:
+class Bases:
+    """The solved bases of a superposition, one per slab length (`_bases`), as every kind keeps
+    them: built on rank 0, shared with the other ranks on demand."""
+
+    problem: Any
+    _bases: Dict[float, Any]
+    _shared: set
+
+    def has(self, dt: float) -> bool:
+        """Whether the basis of slabs of length dt was built (or refused)."""
+        return dt in self._bases
+
+    def share(self, dt: float) -> None:
+        """The basis of slabs of length dt on every rank (the values are then computed
+        wherever asked, not only on rank 0). Collective."""
+        share(self.problem.comm, self._bases, self._shared, dt)
+
+
+class Superposition(Bases):
     """The vertex values of a slab of a linear scene as a function of its start state.
 
     Args:
@@ -125,11 +143,6 @@ class Superposition:
         self._bases: Dict[float, Tuple[Optional[np.ndarray], Optional[np.ndarray]]] = {}
         self._shared: set = set()
         self.basis_solves = 0
-
-    def share(self, dt: float) -> None:
-        """The basis of slabs of length dt on every rank (the values are then computed
-        wherever asked, not only on rank 0). Collective."""
-        share(self.problem.comm, self._bases, self._shared, dt)
 
     def _basis(self, dt: float):
         """Rows of the 2n unit start states (2n, rows, columns) and the Hamiltonian's quadratic

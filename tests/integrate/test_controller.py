@@ -86,8 +86,8 @@ def test_fixed_slabs_keep_their_length_until_one_is_rejected():
     assert adaptive.current() == (1.0, 0.5)
 
 
-@pytest.mark.parametrize("shrinks", [True, False])
-def test_accept_run_gives_the_states_of_accept(shrinks):
+@pytest.mark.parametrize("shrinks, per_octave", [(True, 1), (False, 1), (True, 2), (True, 4)])
+def test_accept_run_gives_the_states_of_accept(shrinks, per_octave):
     """SlabSchedule.accept_run (vectorised for chunks of slabs) gives the states `accept`
     gives slab by slab, stopping after the first slab whose factor changes the length."""
     import copy
@@ -95,7 +95,8 @@ def test_accept_run_gives_the_states_of_accept(shrinks):
     rng = np.random.default_rng(7)
     for trial in range(1500):
         schedule = SlabSchedule(10.0, int(rng.integers(1, 9)), int(rng.integers(0, 7)),
-                                first=float(rng.uniform(0.01, 1.0)), shrinks=shrinks)
+                                first=float(rng.uniform(0.01, 1.0)), shrinks=shrinks,
+                                per_octave=per_octave)
         for _ in range(int(rng.integers(0, 5))):  # somewhere along the run
             if schedule.done():
                 break
@@ -116,3 +117,44 @@ def test_accept_run_gives_the_states_of_accept(shrinks):
         assert len(expected) and expected[-1].tolist() == list(one.state)
         assert run.accept_run(factors).tolist() == expected.tolist()
         assert run.state == one.state
+
+
+def test_the_fine_grid_has_four_lengths_an_octave():
+    from fem_dual.integrate.controller import grid_floor
+
+    units = np.arange(1, 300)
+    grid = grid_floor(units.astype(float), 4)
+    assert (grid <= units).all() and (np.diff(grid) >= 0).all()
+    lengths = sorted(set(grid.tolist()))
+    assert lengths[:12] == [1, 2, 3, 4, 5, 6, 7, 8, 10, 12, 14, 16]
+    assert max(b / a for a, b in zip(lengths[3:], lengths[4:])) == 1.25
+    assert grid_floor(np.array([2.0 ** 40]), 4)[0] == 2 ** 40
+    assert grid_floor(np.array([5.9, 9.99]), 1).tolist() == [4, 8]
+    assert grid_floor(np.array([1.5, 2.9, 3.5, 5.9, 7.9]), 2).tolist() == [1, 2, 3, 4, 6]
+
+
+def test_a_fine_schedule_grows_in_small_steps_and_ends_short():
+    """Under a tolerance the next length is the slab's times its factor rounded down to the
+    fine grid (not to a power of two), a rejected one shrinks by at most FINE_SHRINK, an
+    accepted one keeps its length for a factor in [SAFETY, 1), and the last slab ends at T."""
+    schedule = SlabSchedule(10.0, 1, 10, first=0.1, per_octave=4)
+    t0, dt = schedule.current()
+    assert dt == pytest.approx(10.0 * 96 / 1024)  # 102.4 units: 6 x 16
+    schedule.accept(1.3)  # 124.8 -> 112 = 7 x 16 (a power of two: 64)
+    assert schedule.current()[1] == pytest.approx(10.0 * 112 / 1024)
+    schedule.accept(0.95)  # within the tolerance: kept
+    assert schedule.current()[1] == pytest.approx(10.0 * 112 / 1024)
+    assert schedule.halve(0.9)  # at most FINE_SHRINK: 89.6 -> 80 = 5 x 16
+    assert schedule.current()[1] == pytest.approx(10.0 * 80 / 1024)
+    schedule.accept(1.0)
+    assert schedule.halve(0.8)  # 64 = 4 x 16
+    assert schedule.current()[1] == pytest.approx(10.0 * 64 / 1024)
+    slabs = []
+    while not schedule.done():
+        slabs.append(schedule.current())
+        schedule.accept(1.0)
+    assert (dt + (112 + 80) * 10.0 / 1024 + sum(length for _, length in slabs)
+            == pytest.approx(10.0))
+    assert all(length == pytest.approx(10.0 * 64 / 1024) for _, length in slabs[:-1])
+    assert slabs[-1][1] < slabs[-2][1]  # the short last slab, ending at T in floats
+    assert slabs[-1][0] + slabs[-1][1] == 10.0
