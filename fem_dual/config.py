@@ -278,7 +278,8 @@ class RunConfig:
         return config
 
     def identity(self) -> Dict[str, Any]:
-        """The options that decide a run's slabs and values: a resumed run must repeat them."""
+        """The options that decide a run's slabs and values: a resumed run must repeat them
+        (not --max-slabs: a run stopped by its budget resumes with a larger one)."""
         from fem_dual import __version__
 
         # rtol before slabs: a run with --rtol has slabs=1, so rtol names the difference
@@ -289,7 +290,7 @@ class RunConfig:
                 "base": self.base, "coordinates": self.coordinates,
                 "recovery": self.recovery, "assembly": self.assembly,
                 "staging": self.staging, "superpose": self.superpose,
-                "max_halvings": self.max_halvings, "max_slabs": self.max_slabs,
+                "max_halvings": self.max_halvings,
                 "petsc": dict(sorted(self.petsc.items())),
                 "version": __version__}
 

@@ -27,7 +27,7 @@ ADAPTIVE_LEVELS = 40  # --rtol: the shortest slab is T / 2^40
 # length it meets twice: column links=6 at --rtol 1e-4 / 1e-8 took 0.14 / 0.54 s on powers of
 # two (error 3e-3 / 1.4e-3 x rtol x scale), 0.29 / 0.73 s on two an octave (1.0e-2 / 5.4e-3),
 # 0.38 / 1.15 s on four (1.4e-2 / 9.5e-3)
-NONLINEAR_PER_OCTAVE = 1
+NONLINEAR_PER_OCTAVE = 4
 LINEAR_PER_OCTAVE = 2
 
 
@@ -185,11 +185,12 @@ class SlabSchedule:
         return self.pos >= self.total
 
     def current(self) -> Tuple[float, float]:
-        """(t0, dt) of the slab to solve next. On the fine grid the last slab's dt is the one
-        whose t0 + dt is T in floats (an end at T less an ulp left T outside the motion)."""
+        """(t0, dt) of the slab to solve next. Where lengths are not aligned (the fine grid, a
+        cut) the last slab's dt is the one whose t0 + dt is T in floats (an end at T less an
+        ulp left T outside the motion)."""
         length = min(self.length, self.total - self.pos)
         t0 = self.pos * self.T / self.total
-        if self.fine and self.pos + length >= self.total:
+        if not self.aligned and self.pos + length >= self.total:
             return t0, _reaching(t0, self.T)
         return t0, length * self.T / self.total
 
@@ -290,14 +291,18 @@ class SlabSchedule:
     def halve(self, factor: float = 0.5) -> bool:
         """Shorten the current slab to at most `factor` of its length (at most 1/2 on powers of
         two, FINE_SHRINK on the fine grid); False when it is already at the minimum length."""
+        self.length = min(self.length, self.total - self.pos)  # (a short last slab: its own)
         if self.length == 1:
             return False
-        if self.length == self.ceiling:  # rejected again after the wait: wait longer
+        if self.ceiling and self.length >= self.ceiling:
+            # the rejected length (or a longer one) tried again after the wait: wait longer,
+            # below the shortest length rejected
             self.patience = min(2 * self.patience, MAX_PATIENCE)
         else:
             self.patience = max(self.patience, FIRST_PATIENCE)
-        self.ceiling, self.wait = self.length, self.patience
+            self.ceiling = self.length
+        self.wait = self.patience
         shrink = FINE_SHRINK if self.fine else 0.5
         self.length = min(self._grid_at_most(self.length * min(factor, shrink)),
-                          self._below(self.length))
+                          self._below(min(self.length, self.ceiling)))
         return True

@@ -92,7 +92,7 @@ class Simulation:
         self.tangent_solves = 0
         self.direct_solves = 0  # slabs of a superposed run solved directly (`_superposed`)
         self._first_t0: Dict[float, float] = {}
-        self._cheap_basis = True
+        self._eager_bases = True
         self._maps: Dict[float, Tuple[np.ndarray, np.ndarray]] = {}
         self._pairs: Dict[float, np.ndarray] = {}
         self.resolution = (cells, degree)  # which modes the zero base drops (the companion's:
@@ -179,17 +179,19 @@ class Simulation:
         if self.uses_superposition(config):
             # H_d by polarisation where the fields are sampled (the companion does without)
             self.superposition = self.backend.superposition(config.T, self.with_dual)
-            self._cheap_basis = self.backend.basis_solves() <= 2
+            self._eager_bases = (config.superpose == "yes"
+                                 or self.backend.basis_solves() <= 2)
 
     def _superposed(self, t0: float, dt: float) -> bool:
         """Whether the slab [t0, t0 + dt] comes from a superposition basis. Under a tolerance a
         length's basis (2n solves, or 2 x the largest modal block) is built when a second slab
         of that length is solved: a length tried once (rejected, or the short last slab) costs
         one solve (column links=6 --rtol 1e-10 on a fine grid of lengths: 3.8 s with a basis for
-        every length tried). A basis of two solves (decoupled modes) is built at once."""
+        every length tried). A basis of two solves (decoupled modes) is built at once, and so
+        is every basis with --superpose yes."""
         if self.superposition is None:
             return False
-        if not self.adaptive or self._cheap_basis or self.superposition.has(dt):
+        if not self.adaptive or self._eager_bases or self.superposition.has(dt):
             return True
         return self._first_t0.setdefault(dt, t0) != t0
 

@@ -201,7 +201,7 @@ def test_a_failed_run_writes_its_partial_json_with_infinite_residuals_as_null(ca
     kept, not a ValueError (a traceback, exit 1). An rk4 base of p + 1 steps a cell
     (RK4_STEPS_PER_NODE = 1; the default is 8 (p + 1)) leads there."""
     monkeypatch.setattr("fem_dual.slab.problem.RK4_STEPS_PER_NODE", 1)
-    assert main(["run", "curl3d", "--base", "rk4", "--T", "40", "--rtol", "1e-10", "--degree",
+    assert main(["run", "curl3d", "--base", "rk4", "--T", "50", "--rtol", "1e-10", "--degree",
                  "6", "--cells", "8", "--json"]) == 3
     data = json.loads(capsys.readouterr().out)
     assert data["status"] == "failed" and len(data["t"]) > 1

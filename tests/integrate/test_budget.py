@@ -60,3 +60,15 @@ def test_a_linear_solve_that_fails_at_every_length_stops_after_a_few_halvings():
     with pytest.raises(SolveError, match=f"failed alike on {LINEAR_SOLVE_RETRIES} slabs") as info:
         run(config)
     assert len(info.value.partial.solver["halved_slabs"]) == LINEAR_SOLVE_RETRIES - 1
+
+
+def test_a_run_stopped_by_its_budget_resumes_with_a_larger_one(tmp_path, capsys):
+    out = str(tmp_path / "out")
+    base = ["run", "ziegler", "--T", "1000", "--rtol", "1e-8", "--out", out, "--json"]
+    assert main(base + ["--max-slabs", "100"]) == 3
+    stopped = json.loads(capsys.readouterr().out)
+    assert main(base + ["--resume"]) == 0
+    resumed = json.loads(capsys.readouterr().out)
+    whole = run(RunConfig.create("ziegler", T=1000, rtol=1e-8))
+    assert len(stopped["slab_lengths"]) < len(resumed["slab_lengths"]) == len(whole.slab_lengths)
+    assert np.allclose(resumed["final"]["x"], whole.x[-1], rtol=0, atol=1e-12)

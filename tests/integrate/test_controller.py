@@ -158,3 +158,36 @@ def test_a_fine_schedule_grows_in_small_steps_and_ends_short():
     assert all(length == pytest.approx(10.0 * 64 / 1024) for _, length in slabs[:-1])
     assert slabs[-1][1] < slabs[-2][1]  # the short last slab, ending at T in floats
     assert slabs[-1][0] + slabs[-1][1] == 10.0
+
+
+@pytest.mark.parametrize("per_octave", [1, 2, 4])
+def test_an_error_wall_costs_few_rejections_on_any_grid(per_octave):
+    """An error that jumps above the tolerance beyond one length: after a rejection the
+    schedule waits below the shortest length rejected, and each return past it doubles the
+    wait, on the fine grids as on powers of two (a cascade of rejections, one fine step down
+    at a time, took as many solves as the accepted slabs)."""
+    from fem_dual.integrate.controller import step_factor
+
+    schedule = SlabSchedule(10.0, 1, 20, first=0.001, per_octave=per_octave)
+    accepted = rejected = 0
+    while not schedule.done():
+        t0, dt = schedule.current()
+        err = 1.5 if dt > 0.0025 * 10.0 else 1e-3
+        if err > 1.0:
+            rejected += 1
+            assert schedule.halve(step_factor(err, 4))
+            continue
+        accepted += 1
+        schedule.accept(step_factor(err, 4))
+    assert accepted >= 100 and rejected <= 12
+
+
+def test_a_rejected_short_last_slab_is_shortened():
+    """The last slab, short where it meets T, is halved from its own length (not from the
+    nominal one, which left the same slab to be solved again)."""
+    schedule = SlabSchedule(20.0, 1, 10, first=0.5, per_octave=2)
+    schedule.accept(1.0)
+    schedule.state = (896, 512, 0, 0, 0, 0, 0)  # 128 units left before T
+    t0, dt = schedule.current()
+    assert schedule.halve(0.9)
+    assert schedule.current()[1] < dt and schedule.current()[0] == t0
