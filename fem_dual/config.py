@@ -66,7 +66,7 @@ MAX_DEGREE = 10  # equispaced Lagrange bases beyond this are too ill-conditioned
 # fewest equal sub-slabs that satisfy it; the total number of time cells stays the same.
 STAGING_LIMIT = 800
 STAGING = ("auto", "off")
-ASSEMBLY = ("auto", "forms", "kronecker", "pointwise")
+ASSEMBLY = ("auto", "forms", "kronecker", "pointwise", "spacetime")
 # Auto assembly is pointwise up to this many dual unknowns per solved slab: its banded storage
 # and index arrays grow with the slab (a 1.6-million-dof Ziegler slab would take gigabytes,
 # which PETSc's sparse LU on the forms does not need).
@@ -176,7 +176,8 @@ class RunConfig:
     def _stiff_linear(self) -> bool:
         """A linear scene with energy weights (its frequencies spread: the auto weights of the
         conditioning rule, or asked for), where the zero base state is stable for every mode."""
-        return self.scene.linear and self.scene.weighting() == "energy"
+        return (self.scene.linear and not self.scene.sparse
+                and self.scene.weighting() == "energy")
 
     @functools.cached_property
     def modal(self) -> bool:
@@ -184,6 +185,8 @@ class RunConfig:
         auto for a stiff linear scene on the zero base whose modes allow it."""
         if self.coordinates != "auto":
             return self.coordinates == "modal"
+        if self.spacetime:
+            return False
         from fem_dual.slab.modal import modal_obstacle
 
         return (self._stiff_linear and self.base_state == "zero"
@@ -202,7 +205,7 @@ class RunConfig:
         """Whether the slabs are assembled pointwise and solved by banded LU (linear scenes) or
         the dense Newton (nonlinear ones) of fem_dual.slab.pointwise_newton: asked for, or auto
         (`auto_pointwise`)."""
-        if self.assembly != "auto":
+        if self.assembly != "auto" or self.spacetime:
             return self.assembly == "pointwise"
         return auto_pointwise(self.scene, self.slab_cells, self.degree, self.petsc,
                               self.kronecker)
@@ -210,10 +213,23 @@ class RunConfig:
     @property
     def kronecker(self) -> bool:
         """Whether the slabs are solved in Kronecker form (matrix-free CG)."""
-        if self.assembly != "auto":
+        if self.assembly != "auto" or self.spacetime:
             return self.assembly == "kronecker"
         return (self.scene.linear and self.scene.n >= KRONECKER_MIN_DOFS
                 and self.recovery == "momentum" and self.base != "predictor")
+
+    @property
+    def spacetime(self) -> bool:
+        """Whether the slabs are solved by the sparse, distributed space-time backend
+        (fem_dual.continua.spacetime_backend): asked for, or auto for a continuum beyond its
+        dense limit."""
+        return self.assembly == "spacetime" or (self.assembly == "auto" and self.scene.sparse)
+
+    @property
+    def uses_reference(self) -> bool:
+        """Whether the run is compared with its reference: not with --reference none, nor on
+        the sparse path (the eigen-decomposition needs the dense matrices)."""
+        return self.reference != "none" and not self.scene.sparse
 
     @property
     def stages(self) -> int:
@@ -387,6 +403,9 @@ def _check_choices(scene: Scene, petsc: Dict[str, str], superpose: str, staging:
     choice("staging", staging, STAGING)
     choice("recovery", recovery, RECOVERIES)
     choice("assembly", assembly, ASSEMBLY)
+    if assembly == "spacetime" and not getattr(scene, "sparse_max_dofs", 0):
+        raise InputError(f"assembly=spacetime needs a continuum scene with a sparse path "
+                         f"({scene.name} has none)")
     if assembly == "kronecker" and not scene.linear:
         raise InputError(f"assembly=kronecker needs a linear scene ({scene.name} is "
                          "nonlinear)")

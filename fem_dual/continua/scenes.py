@@ -73,17 +73,80 @@ class ContinuumScene(LinearScene):
         if not isinstance(self.degree, (int, np.integer)) or self.degree not in degrees:
             raise InputError(f"degree={show(self.degree)} must be from {degrees.start} to "
                              f"{degrees.stop - 1}")
-        limit = min(self.max_dofs, MAX_DOFS)
+        limit = self.sparse_max_dofs or self.dense_limit
         if isinstance(self.elements, (int, np.integer)) and self.elements < 1:
             raise InputError(f"elements={show(self.elements)} must be at least 1")
         if isinstance(self.elements, (int, np.integer)) and n < 1:
             raise InputError(f"elements={show(self.elements)} with degree {self.degree} leaves "
                              "no free dof")
         if isinstance(self.elements, (int, np.integer)) and n > limit:
+            path = "sparse" if self.sparse_max_dofs else "dense"
             raise InputError(f"elements={show(self.elements)} is too large: with degree "
                              f"{self.degree} it gives {n} free dofs, more than the {limit} of the "
-                             f"dense path of scene {self.name}")
+                             f"{path} path of scene {self.name}")
         return n
+
+    # -- the sparse path (scenes with sparse_max_dofs): beyond the dense limit ----------------
+    sparse_max_dofs: ClassVar[int] = 0  # 0: the dense path only
+
+    @property
+    def dense_limit(self) -> int:
+        return min(self.max_dofs, MAX_DOFS)
+
+    @property
+    def sparse(self) -> bool:
+        """Whether the scene is beyond its dense limit: solved by the space-time backend
+        (fem_dual.continua.spacetime_backend), without any dense n x n matrix."""
+        return self.n > self.dense_limit
+
+    @classmethod
+    def check_size(cls, n) -> int:
+        if cls.sparse_max_dofs and isinstance(n, (int, np.integer)) and n > cls.max_dofs:
+            return int(n)  # (_free_dofs checked it against sparse_max_dofs)
+        return super().check_size(n)
+
+    def distributed_system(self, comm):
+        """The scene's SpatialSystem assembled over `comm` (the sparse path)."""
+        raise InputError(f"scene {self.name} has no sparse path")
+
+    def serial_system(self):
+        """The scene's SpatialSystem on this rank alone (the state's order)."""
+        return self.spatial()[0]
+
+    def _scipy(self):
+        """M, K, D of the serial system as scipy CSR matrices, and a factorisation of M."""
+        from scipy.sparse.linalg import splu
+
+        mats = self.serial_system().to_scipy()
+        return mats, splu(mats["M"].tocsc())
+
+    def weighting(self) -> str:
+        """Energy weights on the sparse path (the space-time backend's A = Ke, B = M)."""
+        return "energy" if self.sparse else super().weighting()
+
+    def acceleration(self, x0: np.ndarray, v0: np.ndarray) -> np.ndarray:
+        if not self.sparse:
+            return super().acceleration(x0, v0)
+        mats, lu = self._scipy()
+        return -lu.solve(mats["K"] @ x0 + mats["D"] @ v0)
+
+    def fastest_rate(self, x0=None, v0=None, relative: float = 1e-6, scales=None) -> float:
+        """On the sparse path: the largest |lambda| of the pencil (K, M) (ARPACK), sqrt'd: the
+        fastest mode of the mesh, whatever the start state excites (no modal amplitudes)."""
+        if not self.sparse:
+            return super().fastest_rate(x0, v0, relative, scales)
+        from scipy.sparse.linalg import eigs
+
+        mats, _ = self._scipy()
+        lam = eigs(mats["K"].tocsc(), k=1, M=mats["M"].tocsc(), which="LM",
+                   return_eigenvectors=False, tol=1e-3)
+        return float(np.sqrt(np.abs(lam).max()))
+
+    def _dense_only(self, what: str) -> None:
+        if self.sparse:
+            raise InputError(f"{what} of scene {self.name} needs its dense matrices: "
+                             f"{self.n} free dofs are beyond its dense limit of "
+                             f"{self.dense_limit}")
 
     def start_state(self, u0, v0) -> Tuple[np.ndarray, np.ndarray]:
         """(x0, v0) from the start fields' expressions (None: the defaults; u0 None:
@@ -122,10 +185,20 @@ class ContinuumScene(LinearScene):
 
     def system_arrays(self, x0: np.ndarray, v0: np.ndarray) -> Dict[str, np.ndarray]:
         """The semi-discrete system M x'' + D x' + K x = 0 of the free dofs, in the order of the
-        JSON's x and v, with the start vectors u0, v0 (what `<scene>_system.npz` holds)."""
-        return {"M": self.mass_matrix(), "K": self.stiffness_matrix(),
-                "D": self.damping_matrix(), "u0": np.asarray(x0, float),
-                "v0": np.asarray(v0, float), "dof_coordinates": self.dof_coordinates()}
+        JSON's x and v, with the start vectors u0, v0 (what `<scene>_system.npz` holds): dense
+        M, K, D, or beyond the dense limit their CSR parts (M_data, M_indices, M_indptr,
+        M_shape, ...)."""
+        arrays = {"u0": np.asarray(x0, float), "v0": np.asarray(v0, float),
+                  "dof_coordinates": self.dof_coordinates()}
+        if not self.sparse:
+            arrays.update(M=self.mass_matrix(), K=self.stiffness_matrix(),
+                          D=self.damping_matrix())
+            return arrays
+        for name, matrix in self.serial_system().to_scipy().items():  # CSR parts
+            arrays.update({f"{name}_data": matrix.data, f"{name}_indices": matrix.indices,
+                           f"{name}_indptr": matrix.indptr,
+                           f"{name}_shape": np.array(matrix.shape)})
+        return arrays
 
     @abc.abstractmethod
     def dof_coordinates(self) -> np.ndarray:
@@ -148,16 +221,20 @@ class ContinuumScene(LinearScene):
         """{field name: (times, vertices[, components])} of the states x, v (times, n): each
         field and its velocity (`<name>_dot`) at the mesh's vertices (what XDMF stores)."""
         out = {}
-        for (name, _), rows in zip(self.vertex_layout, self._vertex_map[2]):
+        points = len(self._vertex_map[0])
+        for (name, components), rows in zip(self.vertex_layout, self._vertex_map[2]):
             for key, state in ((name, x), (f"{name}_dot", v)):
-                values = np.einsum("vcn,tn->tvc", rows, np.asarray(state))
-                out[key] = values[..., 0] if values.shape[-1] == 1 else values
+                values = np.asarray(rows @ np.asarray(state).T).T  # (times, vertices x comps)
+                values = values.reshape(len(values), points, len(components))
+                out[key] = values[..., 0] if len(components) == 1 else values
         return out
 
     @functools.cached_property
     def _vertex_map(self):
-        """(points, cells or None, per field a (vertices, components, n) map from the state to
-        its values at the vertices; a constrained vertex has the value 0)."""
+        """(points, cells or None, per field a sparse (vertices x components, n) map from the
+        state to its values at the vertices; a constrained vertex has the value 0)."""
+        import scipy.sparse as sps
+
         system, msh, full = self.spatial()
         gdim = msh.geometry.dim
         points = msh.geometry.x[:, :gdim]
@@ -166,18 +243,25 @@ class ContinuumScene(LinearScene):
             points = points[np.argsort(points[:, 0])]
         else:
             cells = msh.geometry.dofmap.array.reshape(-1, 3).astype(np.int64)
-        size = float(np.abs(points).max(initial=1.0))
+        scale = float(np.abs(points).max(initial=1.0))
+        where = {}  # rounded coordinates and component -> free dof of the system
+        keys = np.round(system.coordinates[:, :gdim] / scale, 9)
+        for dof, (key, field) in enumerate(zip(map(tuple, keys.tolist()), system.field)):
+            where.setdefault(key + (int(field),), dof)
+        vertex_keys = list(map(tuple, np.round(points / scale, 9).tolist()))
+        full = sps.identity(self.n, format="csr") if full is None else sps.csr_matrix(full)
         maps = []
         for _, components in self.vertex_layout:
-            rows = np.zeros((len(points), len(components), self.n))
-            for c, component in enumerate(components):
-                mine = np.flatnonzero(system.field == component)
-                where = system.coordinates[mine, :gdim]
-                for i, point in enumerate(points):
-                    hit = mine[np.abs(where - point).max(axis=1) <= 1e-12 * size]
-                    if len(hit):
-                        rows[i, c] = full[hit[0]]
-            maps.append(rows)
+            rows, dofs = [], []
+            for i, key in enumerate(vertex_keys):
+                for c, component in enumerate(components):
+                    dof = where.get(key + (int(component),))
+                    if dof is not None:
+                        rows.append(i * len(components) + c)
+                        dofs.append(dof)
+            pick = sps.csr_matrix((np.ones(len(rows)), (rows, dofs)),
+                                  shape=(len(points) * len(components), system.n))
+            maps.append((pick @ full).tocsr())
         return points, cells, maps
 
     def default_start(self) -> Optional[np.ndarray]:
@@ -334,6 +418,7 @@ class Cauchy2D(ContinuumScene):
                               "the clamped unit square, plane strain, DOLFINx triangles")
     size_field: ClassVar[str] = "elements"
     max_dofs: ClassVar[int] = 512  # dense: 450 free dofs (16 P1 elements a side) took 45 s
+    sparse_max_dofs: ClassVar[int] = 4_000_000  # beyond max_dofs: the space-time backend
     field_names: ClassVar[Tuple[str, ...]] = ("u1", "u2")
     vertex_layout: ClassVar[Tuple[Tuple[str, Tuple[int, ...]], ...]] = (("u", (0, 1)),)
     default_u0: ClassVar[Tuple[str, ...]] = ("0.01*sin(pi*x)*sin(pi*y)",
@@ -363,24 +448,42 @@ class Cauchy2D(ContinuumScene):
             raise InputError(f"delta={show(self.delta)}: beyond |delta| <= lam + mu = "
                              f"{show(self.lam + self.mu)} the spectrum of the clamped square is "
                              "not real (it flutters): not a motion to follow in time here")
-        super().validate()
+        if not self.sparse:  # (the sparse path holds no dense matrix to check)
+            super().validate()
+
+    def _body_parameters(self):
+        from fem_dual.continua.cauchy import CauchyParameters
+
+        return CauchyParameters(lam=self.lam, mu=self.mu, delta=self.delta, rho=self.rho,
+                                elements=int(self.elements), degree=int(self.degree))
 
     @functools.cached_property
     def _body(self):
+        """The body on this rank alone (every rank holds it whole: the state's order, the start
+        fields, the output)."""
         from mpi4py import MPI
 
-        from fem_dual.continua.cauchy import CauchyElasticity, CauchyParameters
+        from fem_dual.continua.cauchy import CauchyElasticity
 
-        params = CauchyParameters(lam=self.lam, mu=self.mu, delta=self.delta, rho=self.rho,
-                                  elements=int(self.elements), degree=int(self.degree))
-        body = CauchyElasticity(params, MPI.COMM_SELF)  # (dense: every rank holds it whole)
-        return body, body.system.dense(limit=self.max_dofs)
+        return CauchyElasticity(self._body_parameters(), MPI.COMM_SELF)
+
+    @functools.cached_property
+    def _dense(self):
+        self._dense_only("the dense path")
+        return self._body.system.dense(limit=self.max_dofs)
+
+    def distributed_system(self, comm):
+        from fem_dual.continua.cauchy import CauchyElasticity
+
+        body = CauchyElasticity(self._body_parameters(), comm)
+        body.system.body = body  # (keeps the mesh and the constants of its forms)
+        return body.system
 
     def mass_matrix(self) -> np.ndarray:
-        return self._body[1][0]
+        return self._dense[0]
 
     def stiffness_matrix(self) -> np.ndarray:
-        return self._body[1][1]
+        return self._dense[1]
 
     def energy_stiffness(self) -> np.ndarray:
         """The symmetric part of K (C_s): positive definite."""
@@ -389,14 +492,14 @@ class Cauchy2D(ContinuumScene):
 
     def interpolate(self, texts: Sequence[str]) -> np.ndarray:
         """The fields interpolated at the Lagrange nodes (clamped: 0 on the boundary)."""
-        return self._body[0].system.interpolate(list(texts), self.field_parameters())
+        return self._body.system.interpolate(list(texts), self.field_parameters())
 
     def spatial(self):
-        body = self._body[0]
-        return body.system, body.msh, np.eye(self.n)
+        body = self._body
+        return body.system, body.msh, None  # (the state is the system's free vector)
 
     def dof_coordinates(self) -> np.ndarray:
-        return np.asarray(self._body[0].system.coordinates[:, :2], float)
+        return np.asarray(self._body.system.coordinates[:, :2], float)
 
 
 for _cls in (Beck, Cauchy2D):

@@ -122,8 +122,9 @@ class _Run:
                                            scales=(self.weights.scale_x, self.weights.scale_v))
         if not self.guarded and self.rate is not None and self.comm.size > 1:
             self.rate = self.comm.bcast(self.rate, root=0)
-        self.bound = GrowthBound(scene, config.x0, config.v0) if (self.guarded and root) \
-            else None
+        # (a sparse scene has no spectrum to bound its motion by)
+        self.bound = GrowthBound(scene, config.x0, config.v0) if (
+            self.guarded and root and not scene.sparse) else None
         self.schedule = schedule_for(config, sim.cells,
                                      start_rate if self.rate is None else self.rate)
         self.order = 2 * config.degree  # the local error per unit of time goes like dt^(2p)
@@ -383,7 +384,7 @@ class _Run:
 def _start_rate(scene, x0: np.ndarray, v0: np.ndarray) -> float:
     """|z'| / |z| at the start (motion_rate), from the scene's acceleration there."""
     if scene.linear:
-        a0 = (scene.first_order_matrix() @ np.concatenate([x0, v0]))[scene.n:]
+        a0 = scene.acceleration(x0, v0)
     else:
         F, d = np.asarray(scene.force_numpy(x0), dtype=float), scene.mass_diagonal()
         a0 = F / d if d is not None else np.linalg.solve(scene.mass_matrix(), F)

@@ -161,7 +161,7 @@ def t_eval_output(result: RunResult, config: RunConfig) -> Dict[str, Any]:
         if result.error_estimate is not None:  # the run's estimate covers every output time
             result.error_estimate = max(result.error_estimate, out["error_estimate"])
     out.update(x=x.tolist(), v=v.tolist())
-    if config.reference != "none":  # at the distinct times, in increasing order
+    if config.uses_reference:  # at the distinct times, in increasing order
         distinct, where = np.unique(done, return_inverse=True)
         x_ref, v_ref = config.scene.reference(config.x0, config.v0)(distinct)
         ex = np.abs(x - x_ref[where]).max(initial=0.0)

@@ -57,19 +57,21 @@ class Simulation:
                  petsc: Optional[Dict[str, str]] = None, recovery: str = "momentum",
                  kronecker: bool = False, with_dual: bool = True, base: str = "start",
                  modal: "bool | ModalBasis" = False, mesh=None,
-                 pointwise: Optional[bool] = None, shared_predictor=None):
+                 pointwise: Optional[bool] = None, shared_predictor=None,
+                 spacetime: bool = False):
         if pointwise is None:  # as RunConfig's auto
-            pointwise = auto_pointwise(scene, cells, degree, petsc, kronecker)
+            pointwise = auto_pointwise(scene, cells, degree, petsc, kronecker) and not spacetime
         pointwise = pointwise and not kronecker
         tic = time.perf_counter()
         self.scene, self.degree, self.cells, self.comm = scene, degree, cells, comm
         self.prefix = solver_prefix(scene.name)
         self.recovery, self.kronecker, self.petsc, self.base = recovery, kronecker, petsc, base
-        self.pointwise = pointwise
+        self.pointwise, self.spacetime = pointwise, spacetime
         self.modal = modal if isinstance(modal, ModalBasis) else (ModalBasis(scene) if modal
                                                                   else None)
         solved = self.modal.scene if modal else scene  # the scene whose slabs are solved
-        assembly = "kronecker" if kronecker else "pointwise" if pointwise else "forms"
+        assembly = ("spacetime" if spacetime else "kronecker" if kronecker
+                    else "pointwise" if pointwise else "forms")
 
         def build():
             with quiet_jit_logging():
@@ -116,6 +118,8 @@ class Simulation:
         return seconds
 
     def uses_superposition(self, config: RunConfig) -> bool:
+        if not getattr(self.backend, "superposes", False):
+            return False
         if config.superpose != "auto":
             return config.superpose == "yes"
         if config.rtol is not None:  # adaptive lengths recur (powers of two): bases pay off
@@ -127,14 +131,16 @@ class Simulation:
         """The simulation that runs `config` (its staged cells per slab)."""
         return cls(config.scene, config.degree, config.slab_cells, comm, config.petsc,
                    config.recovery, config.kronecker, base=config.base_state,
-                   modal=config.modal, pointwise=config.pointwise)
+                   modal=config.modal, pointwise=config.pointwise,
+                   spacetime=config.spacetime)
 
     def matches(self, config: RunConfig) -> bool:
         """Whether `config` runs on this simulation's compiled slab problem."""
         return ((config.scene.name, config.degree, config.slab_cells, config.recovery,
-                 config.kronecker, config.base_state, config.modal, config.pointwise)
+                 config.kronecker, config.base_state, config.modal, config.pointwise,
+                 config.spacetime)
                 == (self.scene.name, self.degree, self.cells, self.recovery, self.kronecker,
-                    self.base, self.modal is not None, self.pointwise))
+                    self.base, self.modal is not None, self.pointwise, self.spacetime))
 
     @property
     def companion(self) -> "Simulation":
@@ -152,7 +158,7 @@ class Simulation:
                                          with_dual=False, base=self.base,
                                          modal=self.modal is not None and self.modal,
                                          mesh=self.backend.mesh, pointwise=self.pointwise,
-                                         shared_predictor=base_state)
+                                         shared_predictor=base_state, spacetime=self.spacetime)
             self._companion.resolution = self.resolution
             self._companion.adaptive = self.adaptive
             self.setup_s += self._companion.setup_s

@@ -131,7 +131,7 @@ class Accumulator:
     def __init__(self, config: RunConfig):
         tic = time.perf_counter()
         self.flow = None
-        if config.reference != "none":
+        if config.uses_reference:
             self.flow = config.scene.reference(config.x0, config.v0)
         self.reference_s = 0.0 if self.flow is None else time.perf_counter() - tic
         self.t: List[np.ndarray] = []

@@ -309,6 +309,7 @@ class Scene(abc.ABC):
     max_dofs: ClassVar[int] = MAX_DOFS  # a scene may lower it; MAX_DOFS bounds every scene
     whole_fields: ClassVar[Tuple[str, ...]] = ()  # parameters that are whole numbers
     continuum: ClassVar[bool] = False  # a spatial discretisation: start state from fields
+    sparse: ClassVar[bool] = False  # no dense matrices: a continuum beyond its dense limit
 
     # -- construction -------------------------------------------------------------------------
     @classmethod

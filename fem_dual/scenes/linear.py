@@ -129,6 +129,10 @@ class LinearScene(Scene):
         return {"M": self.mass_matrix(), "K": self.stiffness_matrix(), "D": self.damping_matrix(),
                 "A": A, "B": B, "Ainv": np.linalg.inv(A), "Binv": np.linalg.inv(B)}
 
+    def acceleration(self, x0: np.ndarray, v0: np.ndarray) -> np.ndarray:
+        """v' at the state (x0, v0): -M^-1 (K x0 + D v0)."""
+        return (self.first_order_matrix() @ np.concatenate([x0, v0]))[self.n:]
+
     def first_order_matrix(self) -> np.ndarray:
         return first_order_matrix(self.mass_matrix(), self.stiffness_matrix(),
                                   self.damping_matrix())

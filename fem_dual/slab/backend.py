@@ -105,6 +105,8 @@ class LinearSlabBackend(SlabBackend):
     """A backend of a linear scene: the slab's action is quadratic, one linear solve a slab, and
     the vertex values are linear in the start state (superposition)."""
 
+    superposes: bool = True  # whether `superposition` is available
+
     @abc.abstractmethod
     def superposition(self, T: float, hamiltonian: bool):
         """Slabs of any start state from this backend's solved unit start states, one basis per

@@ -18,7 +18,7 @@ from fem_dual.slab.values import VertexValues
 
 __all__ = ["make_backend", "ASSEMBLIES"]
 
-ASSEMBLIES = ("pointwise", "forms", "kronecker")
+ASSEMBLIES = ("pointwise", "forms", "kronecker", "spacetime")
 
 
 class _ProblemParts:
@@ -308,6 +308,10 @@ def make_backend(scene, degree: int, cells: int, comm: MPI.Comm, assembly: str, 
     """
     if assembly == "kronecker":
         return KroneckerBackend(scene, degree, cells, comm, prefix, petsc, base, with_dual)
+    if assembly == "spacetime":
+        from fem_dual.continua.spacetime_backend import SpaceTimeBackend
+
+        return SpaceTimeBackend(scene, degree, cells, comm, prefix, petsc, with_dual)
     from fem_dual.slab.problem import SlabProblem
 
     if assembly == "pointwise":  # the slab is small: every rank holds and solves it whole

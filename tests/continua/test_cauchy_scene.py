@@ -50,7 +50,7 @@ def test_a_tensor_beyond_the_real_spectrum_is_refused():
         RunConfig.create("cauchy2d", {"delta": "2.5"}, rtol=1e-3)
 
 
-@pytest.mark.parametrize("params, words", [({"elements": "20"}, "elements=20"),
+@pytest.mark.parametrize("params, words", [({"elements": "2000"}, "elements=2000"),
                                            ({"degree": "4"}, "degree=4"),
                                            ({"elements": "1"}, "no free dof")])
 def test_sizes_are_named(params, words):

@@ -1,0 +1,93 @@
+"""`fem-dual run` of a continuum beyond its dense limit: the sparse, distributed space-time
+backend behind the slab loop. The answer is checked against the exact motion of the exported
+semi-discrete system (its CSR parts in `<scene>_system.npz`), serially and under
+``mpirun -n 2 python3 -m pytest -m mpi tests/continua/test_spacetime_run.py`` (the same answer
+on every partition)."""
+import json
+
+import numpy as np
+import pytest
+import scipy.sparse as sps
+from scipy.sparse.linalg import expm_multiply
+from mpi4py import MPI
+
+from fem_dual.cli import main
+from fem_dual.config import RunConfig
+from fem_dual.integrate.api import run
+
+SPARSE = {"elements": 20}  # 722 free dofs: beyond cauchy2d's dense limit of 512
+
+
+def exact(arrays, T: float) -> np.ndarray:
+    """(x, v) at T of M x'' + D x' + K x = 0 from the exported CSR parts and start vectors."""
+    def csr(name):
+        return sps.csr_matrix((arrays[f"{name}_data"], arrays[f"{name}_indices"],
+                               arrays[f"{name}_indptr"]), shape=tuple(arrays[f"{name}_shape"]))
+
+    M, K, D = (csr(name).toarray() for name in ("M", "K", "D"))
+    n = len(M)
+    A = np.block([[np.zeros((n, n)), np.eye(n)],
+                  [-np.linalg.solve(M, K), -np.linalg.solve(M, D)]])
+    return expm_multiply(sps.csr_matrix(A) * T, np.concatenate([arrays["u0"], arrays["v0"]]))
+
+
+def _errors(data, arrays):
+    z = exact(arrays, data["T"])
+    n = len(z) // 2
+    return (np.abs(np.array(data["final"]["x"]) - z[:n]).max(),
+            np.abs(np.array(data["final"]["v"]) - z[n:]).max(), np.abs(z[n:]).max())
+
+
+@pytest.mark.parametrize("setting", [
+    ["--slabs", "2", "--cells", "4", "--degree", "3", "--T", "0.05"],
+    ["--T", "0.2", "--rtol", "1e-6"]])
+def test_a_large_continuum_runs_sparse_within_its_estimate(tmp_path, capsys, setting):
+    out = tmp_path / "out"
+    assert main(["run", "cauchy2d", "--param", "elements=20", *setting, "--out", str(out),
+                 "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data["solver"]["assembly"] == "spacetime" and data["solver"]["base"] == "start"
+    assert data["error"]["x_max"] is None  # (no dense reference on the sparse path)
+    assert data["dofs_per_slab"] == 2 * data["cells"] * data["degree"] * 722
+    assert all(0 < its < 200 for its in data["solver"]["ksp_iterations"])
+    arrays = np.load(out / "cauchy2d_system.npz")
+    assert "M" not in arrays and arrays["M_shape"].tolist() == [722, 722]
+    ex, ev, scale = _errors(data, arrays)
+    assert max(ex, ev) <= data["error_estimate"] <= 1e-5 * scale
+    assert (out / "cauchy2d_fields.xdmf").exists()
+
+
+def test_spacetime_assembly_needs_a_continuum_with_a_sparse_path(capsys):
+    assert main(["run", "ziegler", "--assembly", "spacetime"]) == 2
+    assert "assembly=spacetime" in capsys.readouterr().err
+
+
+def test_spacetime_assembly_of_a_small_continuum_agrees_with_the_dense_path():
+    """Asked for on a scene within its dense limit, the space-time backend gives the answer of
+    the dense Kronecker path on the same slabs and base state."""
+    common = dict(T=0.1, slabs=2, cells=4, degree=3, base="start", reference="none")
+    sparse = run(RunConfig.create("cauchy2d", params={"elements": 8}, assembly="spacetime",
+                                  **common))
+    dense = run(RunConfig.create("cauchy2d", params={"elements": 8}, assembly="kronecker",
+                                 coordinates="physical", **common))
+    if MPI.COMM_WORLD.rank == 0:
+        assert sparse.solver["assembly"] == "spacetime"
+        assert np.abs(sparse.x - dense.x).max() <= 1e-10 * np.abs(dense.x).max()
+        assert np.abs(sparse.v - dense.v).max() <= 1e-9 * np.abs(dense.v).max()
+
+
+@pytest.mark.mpi
+def test_a_sparse_run_is_the_same_on_every_partition(tmp_path_factory):
+    comm = MPI.COMM_WORLD
+    out = comm.bcast(str(tmp_path_factory.mktemp("sparse")) if comm.rank == 0 else None)
+    config = RunConfig.create("cauchy2d", params=SPARSE, T=0.05, slabs=2, cells=4, degree=3,
+                              out=out)
+    result = run(config, comm)
+    serial = run(config, MPI.COMM_SELF) if comm.rank == 0 else None
+    if comm.rank == 0:
+        # (the CG stops at 1e-11 of the residual: partitions agree to about that)
+        assert np.abs(result.x - serial.x).max() <= 1e-10 * np.abs(serial.x).max()
+        assert np.abs(result.v - serial.v).max() <= 1e-9 * np.abs(serial.v).max()
+        data = {"T": 0.05, "final": {"x": result.x[-1], "v": result.v[-1]}}
+        ex, ev, scale = _errors(data, np.load(f"{out}/cauchy2d_system.npz"))
+        assert max(ex, ev) <= result.error_estimate <= 1e-5 * scale
