@@ -124,3 +124,11 @@ def gather_csr(A: PETSc.Mat) -> Optional[sps.csr_matrix]:
     rows = np.concatenate([p[0][:-1] + s for p, s in zip(parts, starts)] + [[sum(counts)]])
     return sps.csr_matrix((np.concatenate([p[2] for p in parts]),
                            np.concatenate([p[1] for p in parts]), rows), shape=A.getSize())
+
+
+def dof_keys(coordinates: np.ndarray, field: Sequence[int], scale: float) -> List[tuple]:
+    """Hashable keys of points or dofs: coordinates rounded to 1e-9 of `scale`, then the field
+    component; equal keys find the same dof in two numberings (serial and distributed, dofs
+    and mesh vertices)."""
+    rounded = np.round(np.asarray(coordinates, float) / scale, 9)
+    return [tuple(row) + (int(f),) for row, f in zip(rounded.tolist(), field)]

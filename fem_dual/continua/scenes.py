@@ -113,12 +113,10 @@ class ContinuumScene(LinearScene):
         """The scene's SpatialSystem on this rank alone (the state's order)."""
         return self.spatial()[0]
 
-    def _scipy(self):
-        """M, K, D of the serial system as scipy CSR matrices, and a factorisation of M."""
-        from scipy.sparse.linalg import splu
-
-        mats = self.serial_system().to_scipy()
-        return mats, splu(mats["M"].tocsc())
+    @functools.cached_property
+    def _csr(self):
+        """{"M", "K", "D"} of the serial system as scipy CSR matrices (gathered once)."""
+        return self.serial_system().to_scipy()
 
     def weighting(self) -> str:
         """Energy weights on the sparse path (the space-time backend's A = Ke, B = M)."""
@@ -127,8 +125,10 @@ class ContinuumScene(LinearScene):
     def acceleration(self, x0: np.ndarray, v0: np.ndarray) -> np.ndarray:
         if not self.sparse:
             return super().acceleration(x0, v0)
-        mats, lu = self._scipy()
-        return -lu.solve(mats["K"] @ x0 + mats["D"] @ v0)
+        from scipy.sparse.linalg import splu
+
+        mats = self._csr
+        return -splu(mats["M"].tocsc()).solve(mats["K"] @ x0 + mats["D"] @ v0)
 
     def fastest_rate(self, x0=None, v0=None, relative: float = 1e-6, scales=None) -> float:
         """On the sparse path: the largest |lambda| of the pencil (K, M) (ARPACK), sqrt'd: the
@@ -137,7 +137,7 @@ class ContinuumScene(LinearScene):
             return super().fastest_rate(x0, v0, relative, scales)
         from scipy.sparse.linalg import eigs
 
-        mats, _ = self._scipy()
+        mats = self._csr
         lam = eigs(mats["K"].tocsc(), k=1, M=mats["M"].tocsc(), which="LM",
                    return_eigenvectors=False, tol=1e-3)
         return float(np.sqrt(np.abs(lam).max()))
@@ -194,7 +194,7 @@ class ContinuumScene(LinearScene):
             arrays.update(M=self.mass_matrix(), K=self.stiffness_matrix(),
                           D=self.damping_matrix())
             return arrays
-        for name, matrix in self.serial_system().to_scipy().items():  # CSR parts
+        for name, matrix in self._csr.items():  # CSR parts
             arrays.update({f"{name}_data": matrix.data, f"{name}_indices": matrix.indices,
                            f"{name}_indptr": matrix.indptr,
                            f"{name}_shape": np.array(matrix.shape)})
@@ -235,6 +235,8 @@ class ContinuumScene(LinearScene):
         state to its values at the vertices; a constrained vertex has the value 0)."""
         import scipy.sparse as sps
 
+        from fem_dual.continua.dofs import dof_keys
+
         system, msh, full = self.spatial()
         gdim = msh.geometry.dim
         points = msh.geometry.x[:, :gdim]
@@ -244,18 +246,17 @@ class ContinuumScene(LinearScene):
         else:
             cells = msh.geometry.dofmap.array.reshape(-1, 3).astype(np.int64)
         scale = float(np.abs(points).max(initial=1.0))
-        where = {}  # rounded coordinates and component -> free dof of the system
-        keys = np.round(system.coordinates[:, :gdim] / scale, 9)
-        for dof, (key, field) in enumerate(zip(map(tuple, keys.tolist()), system.field)):
-            where.setdefault(key + (int(field),), dof)
-        vertex_keys = list(map(tuple, np.round(points / scale, 9).tolist()))
+        where = {}  # dof key (coordinates, component) -> free dof of the system
+        for dof, key in enumerate(dof_keys(system.coordinates[:, :gdim], system.field, scale)):
+            where.setdefault(key, dof)
         full = sps.identity(self.n, format="csr") if full is None else sps.csr_matrix(full)
         maps = []
         for _, components in self.vertex_layout:
             rows, dofs = [], []
-            for i, key in enumerate(vertex_keys):
-                for c, component in enumerate(components):
-                    dof = where.get(key + (int(component),))
+            for c, component in enumerate(components):
+                keys = dof_keys(points, np.full(len(points), component), scale)
+                for i, key in enumerate(keys):
+                    dof = where.get(key)
                     if dof is not None:
                         rows.append(i * len(components) + c)
                         dofs.append(dof)

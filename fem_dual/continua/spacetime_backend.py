@@ -15,6 +15,7 @@ from typing import Any, Dict, Optional
 import numpy as np
 from mpi4py import MPI
 
+from fem_dual.continua.dofs import dof_keys
 from fem_dual.slab.backend import LinearSlabBackend
 from fem_dual.slab.values import VertexValues
 
@@ -36,10 +37,10 @@ class FreeOrder:
         field = np.asarray(distributed.field)
         self.n = comm.allreduce(len(field), op=MPI.SUM)
         scale = float(np.abs(serial_coordinates).max(initial=1.0))
-        order = _keys(serial_coordinates, serial_field, scale)
-        lookup = {key: i for i, key in enumerate(order)}
+        lookup = {key: i for i, key in enumerate(dof_keys(serial_coordinates, serial_field,
+                                                          scale))}
         try:
-            self.mine = np.array([lookup[key] for key in _keys(coords, field, scale)],
+            self.mine = np.array([lookup[key] for key in dof_keys(coords, field, scale)],
                                  dtype=np.int64)
         except KeyError:
             raise RuntimeError("the distributed free dofs do not match the serial ones") from None
@@ -59,12 +60,6 @@ class FreeOrder:
         return out
 
 
-def _keys(coords: np.ndarray, field: np.ndarray, scale: float):
-    """Hashable keys of dofs: rounded coordinates and field component."""
-    rounded = np.round(np.asarray(coords, float) / scale, 9)
-    return [tuple(row) + (int(f),) for row, f in zip(rounded.tolist(), field)]
-
-
 class SpaceTimeBackend(LinearSlabBackend):
     """Linear slabs of a large continuum, sparse and distributed (module docstring)."""
 
@@ -73,16 +68,21 @@ class SpaceTimeBackend(LinearSlabBackend):
 
     def __init__(self, scene, degree: int, cells: int, comm: MPI.Comm, prefix: str, petsc,
                  with_dual: bool):
+        self.degree, self.cells, self.comm = degree, cells, comm
+        self.with_dual, self.prefix, self.petsc = with_dual, prefix, dict(petsc or {})
+        self.s = np.linspace(0.0, 1.0, cells + 1)
+        self._build(scene)
+
+    def _build(self, scene) -> None:
+        """The distributed system of `scene`, its order and its slab (collective)."""
         from fem_dual.continua.spacetime import SpaceTimeSlab
 
-        self.scene, self.degree, self.cells, self.comm = scene, degree, cells, comm
-        self.with_dual = with_dual
-        self.system = scene.distributed_system(comm)
+        self.scene = scene
+        self.system = scene.distributed_system(self.comm)
         serial = scene.serial_system()
         self.order = FreeOrder(self.system, serial.coordinates, serial.field)
-        self.slab = SpaceTimeSlab.from_system(self.system, degree, cells, prefix,
-                                              options=dict(petsc or {}))
-        self.s = np.linspace(0.0, 1.0, cells + 1)
+        self.slab = SpaceTimeSlab.from_system(self.system, self.degree, self.cells,
+                                              self.prefix, options=self.petsc)
 
     @property
     def num_dofs(self) -> int:
@@ -93,7 +93,9 @@ class SpaceTimeBackend(LinearSlabBackend):
         return len(self.slab.iterations)
 
     def set_scene(self, scene) -> None:
-        raise NotImplementedError("the space-time backend is built for one scene")
+        """Other parameter values: the spatial matrices change, so the slab is built again."""
+        self.close()
+        self._build(scene)
 
     def reset(self, adaptive: bool) -> None:
         self.slab.iterations = []
