@@ -10,7 +10,7 @@ holds.
 """
 from __future__ import annotations
 
-from typing import Any, Dict, Optional
+from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
 from mpi4py import MPI
@@ -67,20 +67,28 @@ class SpaceTimeBackend(LinearSlabBackend):
     superposes = False
 
     def __init__(self, scene, degree: int, cells: int, comm: MPI.Comm, prefix: str, petsc,
-                 with_dual: bool):
+                 with_dual: bool, mesh: Optional[Tuple[Any, FreeOrder]] = None):
+        """mesh: the partner's (distributed system, FreeOrder) to share (the error companion
+        uses the answer's: one assembly, one partition, the same order of the rows)."""
         self.degree, self.cells, self.comm = degree, cells, comm
         self.with_dual, self.prefix, self.petsc = with_dual, prefix, dict(petsc or {})
         self.s = np.linspace(0.0, 1.0, cells + 1)
-        self._build(scene)
+        self._build(scene, mesh)
 
-    def _build(self, scene) -> None:
-        """The distributed system of `scene`, its order and its slab (collective)."""
+    def _build(self, scene, shared: Optional[Tuple[Any, FreeOrder]] = None) -> None:
+        """The distributed system of `scene` (or the shared one), its order and its slab
+        (collective)."""
         from fem_dual.continua.spacetime import SpaceTimeSlab
 
         self.scene = scene
-        self.system = scene.distributed_system(self.comm)
-        serial = scene.serial_system()
-        self.order = FreeOrder(self.system, serial.coordinates, serial.field)
+        self.owns_system = shared is None
+        if shared is None:
+            self.system = scene.distributed_system(self.comm)
+            serial = scene.serial_system()
+            self.order = FreeOrder(self.system, serial.coordinates, serial.field)
+        else:
+            self.system, self.order = shared
+        self.mesh = (self.system, self.order)
         self.slab = SpaceTimeSlab.from_system(self.system, self.degree, self.cells,
                                               self.prefix, options=self.petsc)
 
@@ -102,13 +110,17 @@ class SpaceTimeBackend(LinearSlabBackend):
 
     def close(self) -> None:
         self.slab.close()
-        self.system.destroy()
+        if self.owns_system:
+            self.system.destroy()
 
     def solve(self, z0, t0, dt, start=None) -> Optional[VertexValues]:
         n, mine = self.scene.n, self.order.mine
         z0 = np.asarray(z0, float)
         self.slab.set_slab(z0[:n][mine], z0[n:][mine], dt)
-        self.slab.solve()
+        # the companion starts from the answer's dual fields (same slab, same base state, the
+        # same rows when the spatial system is shared)
+        warm = isinstance(start, SpaceTimeBackend) and start.order is self.order
+        self.slab.solve(start.slab if warm else None)
         x, v = self.slab.vertex_values()
         xi, eta = self.slab.dual_vertex_values()
         ham = self.comm.allreduce(self._hamiltonian(x, v, xi, eta), op=MPI.SUM)

@@ -366,6 +366,9 @@ class _Run:
         record["batched_slabs"] = self.state.batched
         record["estimates"] = self.acc.estimates
         record["companion_degree"] = sim.companion.degree
+        companion = sim.companion.backend.record(sim.companion.prefix)
+        if "ksp_iterations" in companion:
+            record["companion_ksp_iterations"] = companion["ksp_iterations"]
         if scene.linear:
             record["weighting"] = scene.weighting()
         record["assembly"] = sim.backend.assembly

@@ -303,7 +303,8 @@ def make_backend(scene, degree: int, cells: int, comm: MPI.Comm, assembly: str, 
         recovery: how the primal state is read from the dual solution ("momentum", "dtp").
         with_dual: also sample the dual fields (output); the error companion does without.
         base: the base state of H on a slab (fem_dual.choices.BASES).
-        mesh: a slab mesh to share (the companion uses its partner's).
+        mesh: a slab mesh to share (the companion uses its partner's; on the space-time
+            path, the partner's distributed spatial system).
         shared_predictor: the base state's predictor to use instead of a new one.
     """
     if assembly == "kronecker":
@@ -311,7 +312,7 @@ def make_backend(scene, degree: int, cells: int, comm: MPI.Comm, assembly: str, 
     if assembly == "spacetime":
         from fem_dual.continua.spacetime_backend import SpaceTimeBackend
 
-        return SpaceTimeBackend(scene, degree, cells, comm, prefix, petsc, with_dual)
+        return SpaceTimeBackend(scene, degree, cells, comm, prefix, petsc, with_dual, mesh)
     from fem_dual.slab.problem import SlabProblem
 
     if assembly == "pointwise":  # the slab is small: every rank holds and solves it whole

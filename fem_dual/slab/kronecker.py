@@ -81,6 +81,23 @@ class TimeMatrices:
             np.add.at(vec, self.cell_dofs.ravel(), np.tile(self.element[name], cells))
             self.glob[name] = vec
         self.free = np.arange(self.size - 1)  # s = 1 is the Dirichlet dof xi = eta = 0
+        self._basix, self._order = element, order
+
+    def nodes(self) -> np.ndarray:
+        """(p + 1,) the reference nodes of a cell, in s-order."""
+        return np.asarray(self._basix.points)[:, 0][self._order]
+
+    def interpolation(self, coarse: "TimeMatrices") -> np.ndarray:
+        """(size, coarse.size): the values at this space's dofs of a function of `coarse`, a
+        space of lower or equal degree on the same cells (exact: P_q is in P_p for q <= p)."""
+        if coarse.cells != self.cells or coarse.degree > self.degree:
+            raise ValueError("interpolation: the coarse space must share the cells and have "
+                             "no higher degree")
+        values = coarse._basix.tabulate(0, self.nodes()[:, None])[0, :, :, 0][:, coarse._order]
+        out = np.zeros((self.size, coarse.size))
+        for fine, rough in zip(self.cell_dofs, coarse.cell_dofs):
+            out[np.ix_(fine, rough)] = values  # (shared vertices: the same value twice)
+        return out
 
 
 class KroneckerProblem:

@@ -154,3 +154,49 @@ def test_slab_api_and_failure():
             slab.solve()
     finally:
         slab.close()
+
+
+def test_time_interpolation_is_exact_for_the_coarser_degree():
+    """TimeMatrices.interpolation carries a P_p function of the slab's cells into P_(p+1)
+    exactly (their values agree at the richer space's nodes)."""
+    from fem_dual.slab.kronecker import TimeMatrices
+
+    coarse, fine = TimeMatrices(DEGREE, CELLS), TimeMatrices(DEGREE + 1, CELLS)
+    f = lambda s: 1 + s - 3 * s ** 2 + 2 * s ** DEGREE  # noqa: E731 (degree p: in P_p)
+    s_coarse = (np.arange(CELLS)[:, None] + coarse.nodes()[None]) / CELLS
+    s_fine = (np.arange(CELLS)[:, None] + fine.nodes()[None]) / CELLS
+    values = np.zeros(coarse.size)
+    values[coarse.cell_dofs] = f(s_coarse)
+    out = fine.interpolation(coarse) @ values
+    assert np.abs(out[fine.cell_dofs] - f(s_fine)).max() < 1e-13
+    with pytest.raises(ValueError):
+        coarse.interpolation(fine)
+
+
+@pytest.mark.mpi
+def test_companion_started_from_the_answer_converges_to_the_same_slab_sooner():
+    """The degree p + 1 slab started from the degree p answer's dual fields reaches the slab it
+    reaches from zero (to the CG tolerance) in fewer iterations; a guess for another start state
+    is not used."""
+    comm = MPI.COMM_WORLD
+    system = CauchyElasticity(CauchyParameters(delta=0.5, elements=8), comm).system
+    x0 = system.interpolate(list(U0))
+    v0 = system.interpolate(list(V0))
+    answer = SpaceTimeSlab.from_system(system, DEGREE, CELLS, options=TIGHT)
+    cold = SpaceTimeSlab.from_system(system, DEGREE + 1, CELLS, options=TIGHT)
+    warm = SpaceTimeSlab.from_system(system, DEGREE + 1, CELLS, options=TIGHT)
+    try:
+        for slab in (answer, cold, warm):
+            slab.set_slab(x0, v0, 0.05)
+        answer.solve()
+        cold_its, warm_its = cold.solve(), warm.solve(answer)
+        assert warm_its < cold_its, (warm_its, cold_its)
+        for a, b in zip(warm.vertex_values(), cold.vertex_values()):
+            scale = comm.allreduce(np.abs(b).max(), op=MPI.MAX)
+            assert comm.allreduce(np.abs(a - b).max(), op=MPI.MAX) < 1e-9 * scale
+        warm.set_slab(2 * x0, v0, 0.05)  # another start: solved from zero
+        warm.solve(answer)
+        assert not warm.ksp.getInitialGuessNonzero()
+    finally:
+        for slab in (answer, cold, warm):
+            slab.close()
