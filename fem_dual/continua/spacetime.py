@@ -43,7 +43,7 @@ from petsc4py import PETSc
 from scipy import sparse
 
 from fem_dual.errors import SolveError
-from fem_dual.slab.kronecker import TimeMatrices
+from fem_dual.slab.time_space import TimeMatrices
 from fem_dual.slab.petsc_solvers import petsc_options
 
 __all__ = ["SpaceTimeSlab", "SPACETIME_DEFAULTS", "FACTOR_DEFAULTS", "factor_defaults",

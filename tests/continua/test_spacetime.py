@@ -159,7 +159,7 @@ def test_slab_api_and_failure():
 def test_time_interpolation_is_exact_for_the_coarser_degree():
     """TimeMatrices.interpolation carries a P_p function of the slab's cells into P_(p+1)
     exactly (their values agree at the richer space's nodes)."""
-    from fem_dual.slab.kronecker import TimeMatrices
+    from fem_dual.slab.time_space import TimeMatrices
 
     coarse, fine = TimeMatrices(DEGREE, CELLS), TimeMatrices(DEGREE + 1, CELLS)
     f = lambda s: 1 + s - 3 * s ** 2 + 2 * s ** DEGREE  # noqa: E731 (degree p: in P_p)
