@@ -11,7 +11,6 @@
 # beam is one-dimensional, so every rank holds it whole.
 
 # +
-import numpy as np
 from mpi4py import MPI
 
 from fem_dual import RunConfig, run
@@ -74,14 +73,7 @@ print0(comm, "  wrote " + ", ".join(result.output_files))
 # +
 config = RunConfig.create("beck", {"P": "0", "elements": "20"}, T=2.0, rtol=1e-3)
 result = run(config, comm)
-M, K = config.scene.mass_matrix(), config.scene.stiffness_matrix()
-
-
-def energy(x, v):
-    x, v = np.asarray(x, float), np.asarray(v, float)
-    return 0.5 * v @ M @ v + 0.5 * x @ K @ x
-
-
+energy = config.scene.energy
 change = energy(result.final["x"], result.final["v"]) / energy(result.x0, result.v0) - 1
 print0(comm, f"  P = 0: relative change of the energy over T = 2: {change:.1e}; max error "
              f"{max(result.error['x_max'], result.error['v_max']):.2e}")

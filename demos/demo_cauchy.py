@@ -72,14 +72,7 @@ print0(comm, f"  error against the eigen-decomposition of the semi-discrete syst
 # +
 config = RunConfig.create("cauchy2d", {**params, "delta": "0"}, T=2.0, rtol=1e-8)
 result = run(config, comm)
-M, K = config.scene.mass_matrix(), config.scene.stiffness_matrix()
-
-
-def energy(x, v):
-    x, v = np.asarray(x, float), np.asarray(v, float)
-    return 0.5 * v @ M @ v + 0.5 * x @ K @ x
-
-
+energy = config.scene.energy
 change = energy(result.final["x"], result.final["v"]) / energy(result.x0, result.v0) - 1
 print0(comm, f"  delta = 0: relative change of the energy over T = 2: {change:.1e}")
 # -

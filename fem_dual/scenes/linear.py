@@ -62,6 +62,12 @@ class LinearScene(Scene):
                                                        self.stiffness_matrix())))
         return float(np.sqrt(lam.max() / lam.min())) if lam.min() > 0 else float("inf")
 
+    def energy(self, x, v) -> float:
+        """1/2 v^T M v + 1/2 x^T K x: conserved by the motion when K is symmetric and there is
+        no damping (with a non-symmetric K, what the non-conservative part changes)."""
+        x, v = np.asarray(x, float), np.asarray(v, float)
+        return float(0.5 * v @ self.mass_matrix() @ v + 0.5 * x @ self.stiffness_matrix() @ x)
+
     def energy_stiffness(self) -> np.ndarray:
         """The stiffness of H's energy weights: sym K here; a scene with a conservative
         elastic part (the column's springs) may give that instead."""
