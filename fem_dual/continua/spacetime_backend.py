@@ -10,7 +10,7 @@ holds.
 """
 from __future__ import annotations
 
-from typing import Any, Dict, Optional, Tuple
+from typing import Any, Dict, Optional
 
 import numpy as np
 from mpi4py import MPI
@@ -67,28 +67,31 @@ class SpaceTimeBackend(LinearSlabBackend):
     superposes = False
 
     def __init__(self, scene, degree: int, cells: int, comm: MPI.Comm, prefix: str, petsc,
-                 with_dual: bool, mesh: Optional[Tuple[Any, FreeOrder]] = None):
-        """mesh: the partner's (distributed system, FreeOrder) to share (the error companion
-        uses the answer's: one assembly, one partition, the same order of the rows)."""
+                 with_dual: bool, mesh: Optional["SpaceTimeBackend"] = None):
+        """mesh: the partner whose distributed system and FreeOrder to share, for the same
+        scene (the error companion shares the answer's: one assembly, one partition, the same
+        order of the rows)."""
         self.degree, self.cells, self.comm = degree, cells, comm
         self.with_dual, self.prefix, self.petsc = with_dual, prefix, dict(petsc or {})
         self.s = np.linspace(0.0, 1.0, cells + 1)
-        self._build(scene, mesh)
+        self.partner = mesh
+        self.mesh = self  # (what a companion shares)
+        self._build(scene)
 
-    def _build(self, scene, shared: Optional[Tuple[Any, FreeOrder]] = None) -> None:
-        """The distributed system of `scene` (or the shared one), its order and its slab
-        (collective)."""
+    def _build(self, scene) -> None:
+        """The distributed system of `scene` (the partner's, if it holds that scene), its
+        order and its slab (collective)."""
         from fem_dual.continua.spacetime import SpaceTimeSlab
 
         self.scene = scene
-        self.owns_system = shared is None
-        if shared is None:
+        partner = self.partner
+        self.owns_system = partner is None or partner.scene != scene
+        if self.owns_system:
             self.system = scene.distributed_system(self.comm)
             serial = scene.serial_system()
             self.order = FreeOrder(self.system, serial.coordinates, serial.field)
         else:
-            self.system, self.order = shared
-        self.mesh = (self.system, self.order)
+            self.system, self.order = partner.system, partner.order
         self.slab = SpaceTimeSlab.from_system(self.system, self.degree, self.cells,
                                               self.prefix, options=self.petsc)
 
@@ -101,7 +104,8 @@ class SpaceTimeBackend(LinearSlabBackend):
         return len(self.slab.iterations)
 
     def set_scene(self, scene) -> None:
-        """Other parameter values: the spatial matrices change, so the slab is built again."""
+        """Other parameter values: the spatial matrices change, so the slab is built again (a
+        companion shares its partner's new system: the partner is set first)."""
         self.close()
         self._build(scene)
 

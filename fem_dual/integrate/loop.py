@@ -186,10 +186,12 @@ class _Run:
                 return vals, cut
             t2 = time.perf_counter()
             algebraic = sim.algebraic_error(z, vals)
+            # the companion starts from the answer's solved slab: before the tangent solves
+            # another slab on the answer's backend
+            companion = sim.companion.solve_slab(z, t0, dt, start=sim)
             # (no error carried in: none to propagate, the estimate is the local one)
             psi = sim.tangent(z, d, t0, dt, vals) if d.any() else None
             lost = self.lost = sim.unresolved(z, dt)
-            companion = sim.companion.solve_slab(z, t0, dt, start=sim)
             self.timings["estimate_s"] += time.perf_counter() - t2
             config = self.config
             verdict = judged(self.comm, lambda: judge(
