@@ -228,6 +228,7 @@ class SpaceTimeSlab:
         self.time_free = {k: (v[free][:, free] if k not in ("e", "m") else v[free])
                           for k, v in self.time.glob.items()}
         self.recovery = _recovery_rows(self.time)
+        self._interpolations: Dict[Tuple[int, int], np.ndarray] = {}
         self._owned: List[PETSc.Object] = []
         self.M, self.K = M, K
         self.Kt = self._own(K.transpose(PETSc.Mat()))  # (out given: not in place)
@@ -381,18 +382,18 @@ class SpaceTimeSlab:
         estimate."""
         self.setup_preconditioner()
         self.b.array[:] = self.rhs().ravel()
-        if (guess is not None and guess.dt == self.dt and guess.cells == self.cells
-                and np.array_equal(guess.x0, self.x0) and np.array_equal(guess.v0, self.v0)):
-            fine = self.time.interpolation(guess.time)
+        warm = (guess is not None and guess.dt == self.dt and guess.cells == self.cells
+                and np.array_equal(guess.x0, self.x0) and np.array_equal(guess.v0, self.v0))
+        if warm:
+            fine = self._interpolation(guess.time)
             xi, eta = guess.dual_rows()
             start = np.stack([fine @ xi, fine @ eta], axis=1)[self.time.free]
             self.w.array[:] = start.ravel()
-            self.ksp.setInitialGuessNonzero(True)
         else:
             self.w.set(0.0)
-            self.ksp.setInitialGuessNonzero(False)
+        self.ksp.setInitialGuessNonzero(warm)
         rtol = self.ksp.getTolerances()[0]
-        if self.ksp.getInitialGuessNonzero():  # resolve the difference, however small
+        if warm:  # resolve the difference, however small
             start_norm = self._residual_norm() / max(self.b.norm(), 1e-300)
             self.ksp.setTolerances(rtol=min(rtol, WARM_RESOLUTION * start_norm))
         try:
@@ -412,6 +413,14 @@ class SpaceTimeSlab:
                              f"{self.true_residual:.3g} relative (preconditioner not SPD?)")
         self.iterations.append(its)
         return its
+
+    def _interpolation(self, coarse) -> np.ndarray:
+        """TimeMatrices.interpolation from `coarse` (built once per coarse degree: the same on
+        every slab)."""
+        key = (coarse.degree, coarse.cells)
+        if key not in self._interpolations:
+            self._interpolations[key] = self.time.interpolation(coarse)
+        return self._interpolations[key]
 
     def _residual_norm(self) -> float:
         """|b - H w|."""
