@@ -37,6 +37,27 @@ def test_the_estimate_bounds_the_error_against_the_modes_of_the_semi_discrete_sy
     assert error >= tol / 100  # the cost follows the tolerance: not far below it
 
 
+@pytest.mark.parametrize("P", [20.05, 21.0])
+def test_near_and_past_the_flutter_load_the_modes_stay_well_conditioned(P):
+    """Modes about to coalesce (20.05) or coalesced (21, growing) share one balanced block, so the
+    modal coordinates stay usable and the estimate honest against the exponential of the
+    first-order system."""
+    from fem_dual.reference import first_order_matrix
+    from fem_dual.slab.modal import ModalBasis
+
+    config = RunConfig.create("beck", {"P": str(P), "elements": "20"}, T=1, rtol=1e-3)
+    assert np.linalg.cond(ModalBasis(config.scene).U) < 1e4
+    r = run(config)
+    assert r.status == "ok" and r.solver["coordinates"] == "modal"
+    M, K = config.scene.mass_matrix(), config.scene.stiffness_matrix()
+    z = sla.expm(first_order_matrix(M, K, np.zeros_like(M))) @ np.concatenate([r.x0, r.v0])
+    n = len(M)
+    error = max(np.abs(np.asarray(r.final["x"]) - z[:n]).max(),
+                np.abs(np.asarray(r.final["v"]) - z[n:]).max())
+    tol = 1e-3 * max(r.tolerance["scale_x"], r.tolerance["scale_v"])
+    assert error <= r.error_estimate <= 10 * tol
+
+
 def test_without_load_the_energy_is_kept_and_never_grows():
     """P = 0: K is symmetric and the energy 1/2 v'Mv + 1/2 w'Kw is conserved; the modes the slabs
     drop take their (tiny) energy away, never add any."""
