@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import sys
+from pathlib import Path
 from typing import TYPE_CHECKING, List
 
 from fem_dual.cli.streams import json_out, print0
@@ -77,16 +78,27 @@ def bench(args, params, comm: MPI.Comm) -> int:
 def flutter(args, params, comm: MPI.Comm) -> int:
     from fem_dual.config import RunConfig
     from fem_dual.analysis.flutter import flutter
+    import fem_dual.continua.scenes  # noqa: F401 (registers beck)
     from fem_dual.scenes import SCENES
 
     scene = SCENES.get(args.scene)
-    x0 = args.x0 if args.x0 is not None else (None if scene is None or scene.n != 2
-                                              else "0.1,-0.05")
-    v0 = args.v0 if args.v0 is not None else (None if scene is None or scene.n != 2
-                                              else "0.02,0.03")
+    continuum = bool(getattr(scene, "continuum", False))
+    if continuum:  # the discretisation whose eigenvalue load is within 1e-4 of Beck's
+        params = {**getattr(scene, "flutter_params", {}), **params}
+    elif args.out is not None:
+        raise InputError("flutter --out: the mode shapes and the flutter motion are written for "
+                         "continuum scenes (beck)")
+    two = scene is not None and not continuum and scene.n == 2
+    x0 = args.x0 if args.x0 is not None else ("0.1,-0.05" if two else None)
+    v0 = args.v0 if args.v0 is not None else ("0.02,0.03" if two else None)
     base = RunConfig.create(args.scene, params, T=args.T, cells=args.cells, degree=args.degree,
                             slabs=args.slabs, x0=x0, v0=v0)
-    found = flutter(base, comm)
+    if continuum:
+        from fem_dual.continua.flutter_search import continuum_flutter
+
+        found = continuum_flutter(base, comm, None if args.out is None else Path(args.out))
+    else:
+        found = flutter(base, comm)
     if args.json:
         print0(comm, json.dumps(found, allow_nan=False), file=json_out(), flush=True)
     else:
@@ -94,6 +106,8 @@ def flutter(args, params, comm: MPI.Comm) -> int:
         print0(comm, f"critical load of {args.scene}: eigenvalues {found['eigen']:.6f} "
                      f"({found['eigen_s']:.3f} s), dual simulations {found['dual']:.6f} "
                      f"({found['dual_s']:.2f} s); relative gap {gap:.2e}")
+        for path in found.get("files", []):
+            print0(comm, f"wrote {path}")
     return 0
 
 

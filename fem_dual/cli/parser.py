@@ -194,7 +194,11 @@ def _flutter(sub) -> None:
     f.set_defaults(slabs="40", T="40", x0=None, v0=None)
     f.add_argument("--cells", default="16", help="cells per slab (default 16)")
     f.add_argument("--degree", default="5", help="degree of the dual fields (default 5)")
-    f.add_argument("--json", action="store_true", help="print {eigen, dual, eigen_s, dual_s, dual_tol}")
+    f.add_argument("--out", help="continuum scenes (beck): write the two slowest mode shapes "
+                   "(<scene>_modes.xdmf) and the flutter motion (the dual simulation just above "
+                   "the load found, with its usual files) into this directory")
+    f.add_argument("--json", action="store_true", help="print {eigen, dual, eigen_s, dual_s, "
+                   "dual_tol}; continuum scenes add omega2, dual_bracket, runs, elements, files")
 
 
 def _stress(sub) -> None:
