@@ -17,7 +17,7 @@ BECK = 20.0509536190  # Beck's flutter load, EI/L^2 (Euler-Bernoulli)
 QUICK = ["--param", "elements=20", "--T", "20", "--slabs", "20"]
 
 
-@pytest.mark.mpi
+@pytest.mark.serial  # (demos/demo_beck.py runs the search under mpirun too)
 def test_dual_simulations_find_the_eigenvalue_load_and_write_modes_and_motion(tmp_path, capsys):
     tmp_path = Path(MPI.COMM_WORLD.bcast(str(tmp_path), root=0))  # rank 0's, on every rank
     assert main(["flutter", "beck", *QUICK, "--json", "--out", str(tmp_path)]) == 0
