@@ -18,7 +18,7 @@ from mpi4py import MPI
 from fem_dual import RunConfig, run
 from fem_dual.continua import flutter_load, frequencies
 from fem_dual.continua.flutter import beck_eigenvalues
-from fem_dual.continua.flutter_search import continuum_flutter
+from fem_dual.analysis.continuum_flutter import continuum_flutter
 from fem_dual.mpi import print0
 
 comm = MPI.COMM_WORLD

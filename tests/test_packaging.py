@@ -97,8 +97,9 @@ def test_help_version_and_bad_options_load_no_heavy_module(argv, status):
 
 @pytest.mark.serial
 def test_a_bad_modal_request_loads_neither_dolfinx_nor_petsc():
-    done = subprocess.run([sys.executable, "-c", _HEAVY, "run", "ziegler", "--coordinates",
-                           "modal", "--param", "P=3"], capture_output=True, text=True)
+    done = subprocess.run([sys.executable, "-c", _HEAVY, "run", "linear", "--param", "dofs=2",
+                           "--param", "M=1,0,0,1", "--param", "K=-1,0,0,4", "--coordinates",
+                           "modal"], capture_output=True, text=True)
     got_status, heavy = done.stdout.strip().splitlines()[-1].split("|")
     assert int(got_status) == 2 and "does not oscillate" in done.stderr
     assert heavy == "scipy", heavy  # the pencil's eigenvalues: scipy.linalg only"

@@ -236,7 +236,7 @@ def flutter(base: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD,
     """{eigen, dual, eigen_s, dual_s, dual_tol}: the critical loads, the seconds each search
     took, and the growth-rate threshold of the dual search (`tol` if given, else DUAL_REL_TOL of
     the fastest frequency fitted at P = 0). A continuum (Beck's column) has its own search,
-    fem_dual.continua.flutter_search, which reads the motion in its slow modes.
+    fem_dual.analysis.continuum_flutter, which reads the motion in its slow modes.
 
     InputError when the eigenvalues are unstable at P = 0; SolveError when a dual simulation
     fails or cannot resolve the growth (its fit's uncertainty, or growth at P = 0 that the
@@ -248,7 +248,7 @@ def flutter(base: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD,
         raise InputError(f"flutter needs a linear scene with a load P, not {base.scene.name}")
     if base.scene.continuum:
         raise InputError(f"flutter {base.scene.name}: a continuum's search is "
-                         "fem_dual.continua.flutter_search.continuum_flutter")
+                         "fem_dual.analysis.continuum_flutter.continuum_flutter")
     tic = time.perf_counter()
     lam0 = _eigenvalues(base.scene, 0.0)
     eig_tol = eigen_tolerance(base.scene)

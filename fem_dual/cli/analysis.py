@@ -94,7 +94,7 @@ def flutter(args, params, comm: MPI.Comm) -> int:
     base = RunConfig.create(args.scene, params, T=args.T, cells=args.cells, degree=args.degree,
                             slabs=args.slabs, x0=x0, v0=v0)
     if continuum:
-        from fem_dual.continua.flutter_search import continuum_flutter
+        from fem_dual.analysis.continuum_flutter import continuum_flutter
 
         found = continuum_flutter(base, comm, None if args.out is None else Path(args.out))
     else:

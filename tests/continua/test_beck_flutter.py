@@ -42,7 +42,7 @@ def test_dual_simulations_find_the_eigenvalue_load_and_write_modes_and_motion(tm
 
 @pytest.mark.serial
 def test_the_default_discretisation_meets_beck_within_1e_4():
-    from fem_dual.continua.flutter_search import _eigen
+    from fem_dual.analysis.continuum_flutter import _eigen
     from fem_dual.scenes import get_scene
 
     beck = get_scene("beck")
