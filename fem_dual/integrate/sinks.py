@@ -16,7 +16,7 @@ from fem_dual.errors import InputError
 from fem_dual.output import (XdmfSeries, lock_directory, series_files, write_arrays,
                              write_polyline, written_by_us)
 from fem_dual.slab.values import VertexValues
-from fem_dual.integrate.estimate import SlabEstimate
+from fem_dual.integrate.estimate import SlabEstimate, accumulated_floor
 
 __all__ = ["AcceptedSlab", "SlabBatch", "PartialBatch", "Accumulator", "XdmfSink",
            "ProgressSink"]
@@ -89,10 +89,14 @@ class SlabBatch:
                             tuple(self.scales[j]))
 
     def reported(self) -> np.ndarray:
-        """SlabEstimate.reported of every slab, (slabs, vertices, 2): x's, then v's."""
+        """The estimated |error| of x and of v per vertex (max over components) of every slab,
+        (slabs, vertices, 2), at least the round-off accumulated up to the slab."""
         slabs, vertices, n2 = self.glob.shape
         g = np.abs(self.glob).reshape(slabs, vertices, 2, n2 // 2).max(axis=-1)
-        return np.maximum(g, self.floor[:, None, :])
+        return np.maximum(g, self.accumulated_floor()[:, None, :])
+
+    def accumulated_floor(self) -> np.ndarray:
+        return accumulated_floor(self.floor, self.first)
 
 
 _TINY = np.finfo(float).tiny
@@ -121,8 +125,8 @@ def _compiled_summaries(batch: SlabBatch) -> Optional[tuple]:
 
     if native.library() is None:
         return None
-    return summaries(batch.glob, batch.local, batch.floor, batch.values.hamiltonian,
-                     batch.first == 0, _TINY)
+    return summaries(batch.glob, batch.local, batch.accumulated_floor(),
+                     batch.values.hamiltonian, batch.first == 0, _TINY)
 
 
 class Accumulator:
@@ -242,7 +246,7 @@ class Accumulator:
 def _fields(vals: VertexValues, slab: AcceptedSlab) -> Dict[str, np.ndarray]:
     return {"t": slab.t0 + slab.dt * vals.s, "xi": vals.xi, "eta": vals.eta, "x_hat": vals.x,
             "v_hat": vals.v, "hamiltonian": vals.hamiltonian,
-            "error_estimate": np.maximum(*slab.estimate.reported())}
+            "error_estimate": SlabBatch.of(slab).reported()[0].max(axis=-1)}
 
 
 def _restart(slab: AcceptedSlab) -> Dict[str, np.ndarray]:
