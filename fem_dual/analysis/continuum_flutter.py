@@ -31,6 +31,7 @@ from mpi4py import MPI
 from fem_dual.analysis.flutter import DUAL_REL_TOL, GrowthFit, fit_growth
 from fem_dual.config import RunConfig
 from fem_dual.errors import InputError, SolveError
+from fem_dual.inputs import output_path
 from fem_dual.integrate.api import run
 
 __all__ = ["continuum_flutter", "slow_modes", "SPREAD", "REL_WIDTH"]
@@ -104,6 +105,8 @@ def continuum_flutter(base: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD,
     scene = base.scene
     if not hasattr(scene, "condensed"):
         raise InputError(f"flutter {scene.name}: the continuum has no follower load P")
+    if out is not None:  # before the search, not after it
+        out = _directory(out, comm)
     tic = time.perf_counter()
     found = _eigen(scene)
     eigen, eigen_s = found.load, time.perf_counter() - tic
@@ -141,6 +144,21 @@ def continuum_flutter(base: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD,
             "runs": len(fits.cache), "elements": int(scene.elements), "files": files}
 
 
+def _directory(out, comm: MPI.Comm) -> Path:
+    """`out` made a directory (rank 0), or InputError naming it."""
+    out = output_path(out)
+    problem = None
+    if comm.rank == 0:
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            problem = f"--out {out} cannot be a directory: {exc.strerror}"
+    problem = comm.bcast(problem, root=0)
+    if problem:
+        raise InputError(problem)
+    return out
+
+
 def _bracket(grows, eigen: float) -> tuple:
     """(lo, hi): lo stable, hi growing by dual simulations, from eigen (1 -+ SPREAD), the
     width doubling on the side that did not hold."""
@@ -164,7 +182,6 @@ def _write(fits: DualFits, scene, below: float, above: float, out: Path,
     from fem_dual.output import XdmfSeries
     from fem_dual.slab.modal import ModalBasis
 
-    out.mkdir(parents=True, exist_ok=True)
     loaded = replace(scene, P=below).checked()
     if comm.rank == 0:
         basis = ModalBasis(loaded)

@@ -51,10 +51,13 @@ def test_the_default_discretisation_meets_beck_within_1e_4():
 
 
 @pytest.mark.serial
-def test_a_window_too_short_is_exit_3_and_out_on_particles_exit_2(capsys):
+def test_a_window_too_short_is_exit_3_and_out_on_particles_exit_2(capsys, tmp_path):
     assert main(["flutter", "beck", "--param", "elements=10", "--T", "0.001", "--cells", "2",
                  "--degree", "1", "--json"]) == 3
     assert json.loads(capsys.readouterr().out)["status"] == "failed"
     assert main(["flutter", "ziegler", "--out", "somewhere"]) == 2
+    (tmp_path / "a_file").write_text("")  # refused before the search, in one line
+    assert main(["flutter", "beck", "--out", str(tmp_path / "a_file")]) == 2
+    assert "a_file cannot be a directory" in capsys.readouterr().err
     with pytest.raises(InputError, match="continuum_flutter"):
         flutter(RunConfig.create("beck", {"elements": "10"}))
