@@ -31,8 +31,8 @@ from fem_dual.integrate.dense import GAP_ORDER, slab_interpolation_gaps
 from fem_dual.quiet import quiet_numpy
 from fem_dual.slab.values import VertexValues
 
-__all__ = ["ErrorWeights", "SlabEstimate", "Estimates", "estimate_slabs", "accumulated_floor", "batched", "all_finite",
-           "output_request", "ESTIMATE_SAFETY", "ROUNDOFF_REL"]
+__all__ = ["ErrorWeights", "SlabEstimate", "Estimates", "estimate_slabs", "accumulated_floor",
+           "batched", "all_finite", "output_request", "ESTIMATE_SAFETY", "ROUNDOFF_REL"]
 
 # The companion's difference times this: the companion's own error (a factor O(h^2) smaller)
 # and its alignment with the answer's make the bare difference 0.9-1.1 times the true error;

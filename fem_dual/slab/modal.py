@@ -79,7 +79,7 @@ def _real_modes(M: np.ndarray, K: np.ndarray) -> Tuple[np.ndarray, ...]:
 
     Near coalescence the eigenvectors of the two modes (or Re u and Im u of the pair) tend to
     one vector. Kept apart they make U ill-conditioned (condition number 4.7e6 for Beck's column
-    at 20.06, 4e-4 past its flutter load), and every modal amplitude carries eps cond(U) of
+    at 20.06, 9e-3 past its flutter load), and every modal amplitude carries eps cond(U) of
     the state: in a fast mode, whose velocity is omega times that, round-off read as motion the
     slab cannot resolve. One block is exact (the span is invariant); its basis is balanced
     (_balanced) between U's condition number and the block's departure from normality, which
@@ -111,7 +111,7 @@ def _real_modes(M: np.ndarray, K: np.ndarray) -> Tuple[np.ndarray, ...]:
         if blocks and np.linalg.norm((R @ blocks[-1]).T @ (R @ block), 2) > GROUP_COSINE:
             block = _orthonormal(R, np.hstack([blocks.pop(), block]))
         blocks.append(block)
-    blocks = [b if b.shape[1] == 1 else _balanced(b, M, K) for b in blocks]
+    blocks = [b if b.shape[1] == 1 else _balanced(b, K) for b in blocks]
     U = np.hstack(blocks) if blocks else np.zeros((len(M), 0))
     if U.shape[1] != len(M):
         return U, np.zeros((0, 0)), np.zeros((0, 0)), np.zeros(0)
@@ -132,7 +132,7 @@ def _real_modes(M: np.ndarray, K: np.ndarray) -> Tuple[np.ndarray, ...]:
     return U, Kr, Ar, omega
 
 
-def _balanced(Q: np.ndarray, M: np.ndarray, K: np.ndarray) -> np.ndarray:
+def _balanced(Q: np.ndarray, K: np.ndarray) -> np.ndarray:
     """The M-orthonormal basis Q of a block, its columns scaled so that the block's coupling
     is balanced (the norms of row i and column i off the diagonal equal: Osborne's iteration),
     the scales within MAX_BLOCK_SCALING of each other.
@@ -160,15 +160,14 @@ def _balanced(Q: np.ndarray, M: np.ndarray, K: np.ndarray) -> np.ndarray:
 
 def _orthonormal(R: np.ndarray, columns: np.ndarray) -> np.ndarray:
     """An M-orthonormal basis (M = R^T R) of the span of `columns`."""
-    Q, T = np.linalg.qr(R @ columns)
-    return sla.solve_triangular(R, Q)
+    return sla.solve_triangular(R, np.linalg.qr(R @ columns)[0])
 
 
 @functools.lru_cache(maxsize=4)
 def _decomposition(scene: LinearScene) -> tuple:
     """((U, Kr, Ar, omega), None) of the scene's modes (see _real_modes), or (None, why they
-    cannot be used). Once per scene: the check of `coordinates` and the ModalBasis of a run and of its companion share it
-    (a QZ of the pencil costs 0.2 s for 200 links)."""
+    cannot be used). Once per scene: the check of `coordinates` and the ModalBasis of a run and
+    of its companion share it (a QZ of the pencil costs 0.2 s for 200 links)."""
     if scene.A is not None or scene.B is not None:
         return None, "H's weights A, B were given in physical coordinates"
     M, K = scene.mass_matrix(), scene.stiffness_matrix()
