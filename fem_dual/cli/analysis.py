@@ -84,6 +84,11 @@ def flutter(args, params, comm: MPI.Comm) -> int:
     scene = SCENES.get(args.scene)
     continuum = bool(getattr(scene, "continuum", False))
     if continuum:  # the discretisation whose eigenvalue load is within 1e-4 of Beck's
+        given = [f"--param {name}" for name in ("P",) if name in params] + [
+            f"--{name}" for name in ("x0", "u0", "v0") if getattr(args, name, None) is not None]
+        if given:
+            raise InputError(f"flutter {args.scene}: {', '.join(given)} not taken: the search "
+                             "sets the load and starts in the two slowest modes at each load")
         params = {**getattr(scene, "flutter_params", {}), **params}
     elif args.out is not None:
         raise InputError("flutter --out: the mode shapes and the flutter motion are written for "

@@ -59,5 +59,8 @@ def test_a_window_too_short_is_exit_3_and_out_on_particles_exit_2(capsys, tmp_pa
     (tmp_path / "a_file").write_text("")  # refused before the search, in one line
     assert main(["flutter", "beck", "--out", str(tmp_path / "a_file")]) == 2
     assert "a_file cannot be a directory" in capsys.readouterr().err
+    for given in (["--param", "P=5"], ["--u0", "x**2, 2*x"], ["--v0", "0, 0"]):
+        assert main(["flutter", "beck", *given]) == 2
+        assert "not taken" in capsys.readouterr().err
     with pytest.raises(InputError, match="continuum_flutter"):
         flutter(RunConfig.create("beck", {"elements": "10"}))
