@@ -10,7 +10,7 @@ ROOT = Path(__file__).resolve().parents[1]
 # meshes are installed as fem_dual.forms and fem_dual.meshes.
 LAYERS = [
     {"errors", "quiet", "choices", "faults", "mpi", "compat"},
-    {"forms", "meshes", "expression", "reference", "output", "petsc_check", "native"},
+    {"forms", "meshes", "expression", "reference", "output", "petsc_check", "native", "modes"},
     {"scenes"},
     {"slab", "continua"},
     {"config", "inputs"},

@@ -20,23 +20,20 @@ import functools
 from typing import ClassVar, Optional, Tuple
 
 import numpy as np
-import scipy.linalg as sla
 
 from fem_dual.errors import InputError
+from fem_dual.modes import real_modes
 from fem_dual.slab.values import VertexValues, times_last
 from fem_dual.scenes.base import is_spd
 from fem_dual.scenes.linear import LinearScene
 
-__all__ = ["ModalScene", "ModalBasis", "MAX_CONDITION", "modal_obstacle"]
+__all__ = ["ModalScene", "ModalBasis", "MAX_CONDITION", "modal_obstacle", "modal_decomposition"]
 
 RESOLVED_TURN = 0.25  # under a tolerance the zero base drops a mode turning more than this x
 # degree radians per cell: between it and degree radians the slab follows the mode with an
 # error that does not shrink like dt^(2p+1) (judged per unit of time it drove the slabs of a
 # beam to 1e-6 of its period), beyond it the mode is damped anyway
 MAX_CONDITION = 1e8  # cond(U) beyond this: modes too close to coalescing (near flutter)
-GROUP_COSINE = 0.9999  # modes whose spans meet at an M-cosine above this share a block (kept
-# apart, the two would give U a condition number above 140)
-MAX_BLOCK_SCALING = 1e3  # a block's basis vectors differ in length by at most this
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,108 +61,9 @@ class ModalScene(LinearScene):
         return np.array(self.Dr, dtype=float)
 
 
-def _real_modes(M: np.ndarray, K: np.ndarray) -> Tuple[np.ndarray, ...]:
-    """(U, Kr, Ar, omega): columns spanning the modes of M^-1 K, sorted by frequency, and Kr, the
-    diagonal blocks of U^-1 M^-1 K U. A real eigenvector is one column of unit M-norm; a complex
-    pair's two columns are an M-orthonormal basis of (Re u, Im u); modes whose spans are nearly
-    parallel (M-cosine above GROUP_COSINE: eigenvalues about to coalesce, on either side of a
-    flutter load) share one block with an M-orthonormal basis of their joint span. Ar is H's
-    energy weight in these coordinates: Kr itself on a one-mode block, the mean of the block's
-    eigenvalues (trace / size) times I on a larger one, whose Kr need not have a positive
-    definite symmetric part (Beck's column at 20.05: eigenvalues 119.9, 122.8, coupling 281);
-    a block with an eigenvalue of real part <= 0 gets that as its weight (not positive: the
-    mode does not oscillate, and the modal coordinates refuse the scene). omega (n,): each
-    coordinate's frequency, sqrt of the largest |eigenvalue| of its block.
-
-    Near coalescence the eigenvectors of the two modes (or Re u and Im u of the pair) tend to
-    one vector. Kept apart they make U ill-conditioned (condition number 4.7e6 for Beck's column
-    at 20.06, 9e-3 past its flutter load), and every modal amplitude carries eps cond(U) of
-    the state: in a fast mode, whose velocity is omega times that, round-off read as motion the
-    slab cannot resolve. One block is exact (the span is invariant); its basis is balanced
-    (_balanced) between U's condition number and the block's departure from normality, which
-    the slab solves like any small coupled system.
-
-    The blocks off the diagonal are round-off of size eps cond(U) |K| (7e-3 for a 200-link
-    column, whose fastest mode has omega^2 = 2.6e10); kept, they couple the slow mode to the
-    unresolved ones and cost 5 digits. Dropping them is exact for a K perturbed by that
-    round-off (backward stable). The diagonal blocks are two-sided Rayleigh quotients, more
-    accurate than the eigenvalues themselves.
-
-    The modes come from QZ on the pencil (K, M), not from eig(M^-1 K): its backward error is
-    relative to |K| and |M| instead of |M^-1 K| (2.6e10 for that column, whose M has condition
-    number 6.5e4), so the slow eigenvalue is right to 1.9e-12 instead of 1.5e-8 (against a
-    certified 500-bit eigen-decomposition), and the start state's share of each mode with it."""
-    lam, vecs = sla.eig(K, M)  # QZ on the pencil: see the docstring
-    order = np.argsort(np.abs(lam), kind="stable")
-    R = sla.cholesky(M)  # M = R^T R: the M-inner product is the Euclidean one of R u
-    blocks: list = []
-    for k in order:
-        if lam[k].imag < 0:
-            continue  # its conjugate brings the pair
-        u = vecs[:, k]
-        if lam[k].imag == 0:
-            block = u.real[:, None] / np.sqrt(np.einsum("ij,ik,kj->j", u.real[:, None], M,
-                                                        u.real[:, None]))
-        else:
-            block = _orthonormal(R, np.stack([u.real, u.imag], axis=1))
-        if blocks and np.linalg.norm((R @ blocks[-1]).T @ (R @ block), 2) > GROUP_COSINE:
-            block = _orthonormal(R, np.hstack([blocks.pop(), block]))
-        blocks.append(block)
-    blocks = [b if b.shape[1] == 1 else _balanced(b, K) for b in blocks]
-    U = np.hstack(blocks) if blocks else np.zeros((len(M), 0))
-    if U.shape[1] != len(M):
-        return U, np.zeros((0, 0)), np.zeros((0, 0)), np.zeros(0)
-    full = np.linalg.solve(U, np.linalg.solve(M, K @ U))
-    Kr, Ar, omega = np.zeros_like(full), np.zeros_like(full), np.zeros(len(M))
-    i = 0
-    for block in blocks:
-        here = slice(i, i + block.shape[1])
-        Kr[here, here] = full[here, here]
-        lam = np.linalg.eigvals(Kr[here, here])
-        omega[here] = np.sqrt(np.abs(lam).max())
-        if len(lam) == 1:
-            Ar[here, here] = Kr[here, here]
-        else:  # not positive where an eigenvalue is not (a mode that does not oscillate)
-            weight = lam.real.mean() if lam.real.min() > 0 else lam.real.min()
-            Ar[here, here] = weight * np.eye(len(lam))
-        i += len(lam)
-    return U, Kr, Ar, omega
-
-
-def _balanced(Q: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """The M-orthonormal basis Q of a block, its columns scaled so that the block's coupling
-    is balanced (the norms of row i and column i off the diagonal equal: Osborne's iteration),
-    the scales within MAX_BLOCK_SCALING of each other.
-
-    In an orthonormal basis a block of modes about to coalesce is far from normal (Beck's
-    column at 20.05: eigenvalues 119.9 and 122.8, coupling 281 and 1.1e-5), which the slab's
-    preconditioner (the symmetric model) does not see: 180 CG iterations a solve. Balanced,
-    the coupling falls to 0.28 and 0.01, U's condition number rises to 2.3e3."""
-    T = Q.T @ K @ Q  # = Q^-1 M^-1 K Q, as Q^T M Q = I
-    off = np.abs(T - np.diag(np.diag(T)))
-    d = np.ones(len(T))
-    for _ in range(50):
-        largest = 0.0
-        for i in range(len(T)):  # one index at a time (both at once would overshoot)
-            row, col = off[i] @ d / d[i], off[:, i] @ (1.0 / d) * d[i]
-            if row > 0 and col > 0:
-                factor = np.sqrt(row / col)
-                d[i] *= factor
-                largest = max(largest, abs(np.log(factor)))
-        if largest < 1e-3:
-            break
-    d = np.maximum(d / d.max(), 1.0 / MAX_BLOCK_SCALING)
-    return Q * d
-
-
-def _orthonormal(R: np.ndarray, columns: np.ndarray) -> np.ndarray:
-    """An M-orthonormal basis (M = R^T R) of the span of `columns`."""
-    return sla.solve_triangular(R, np.linalg.qr(R @ columns)[0])
-
-
 @functools.lru_cache(maxsize=4)
 def _decomposition(scene: LinearScene) -> tuple:
-    """((U, Kr, Ar, omega), None) of the scene's modes (see _real_modes), or (None, why they
+    """((U, Kr, Ar, omega), None) of the scene's modes (see fem_dual.modes.real_modes), or (None, why they
     cannot be used). Once per scene: the check of `coordinates` and the ModalBasis of a run and
     of its companion share it (a QZ of the pencil costs 0.2 s for 200 links)."""
     if scene.A is not None or scene.B is not None:
@@ -173,7 +71,7 @@ def _decomposition(scene: LinearScene) -> tuple:
     M, K = scene.mass_matrix(), scene.stiffness_matrix()
     if not (np.isfinite(M).all() and np.isfinite(K).all()):
         return None, "the modes of (K, M) cannot be computed"
-    modes = _real_modes(M, K)
+    modes = real_modes(M, K)
     U, Ar = modes[0], modes[2]
     if U.shape != (scene.n, scene.n) or not np.isfinite(U).all():
         return None, "the modes of (K, M) cannot be computed"
@@ -184,6 +82,12 @@ def _decomposition(scene: LinearScene) -> tuple:
     if not is_spd(Ar):
         return None, "a mode of (K, M) does not oscillate (zero or negative stiffness)"
     return modes, None
+
+
+def modal_decomposition(scene: LinearScene) -> Optional[tuple]:
+    """(U, Kr, Ar, omega) of the scene's modes (fem_dual.modes.real_modes), or None where they
+    cannot be used (modal_obstacle says why)."""
+    return _decomposition(scene)[0]
 
 
 def modal_obstacle(scene: LinearScene) -> Optional[str]:
