@@ -21,6 +21,7 @@ from fem_dual import faults, native
 from fem_dual.config import STAGING_LIMIT, RunConfig
 from fem_dual.errors import SolveError, one_line
 from fem_dual.integrate.chunks import batch_step
+from fem_dual.integrate.conditioning import data_floor
 from fem_dual.integrate.controller import SlabSchedule, schedule_for, step_factor
 from fem_dual.integrate.estimate import ErrorWeights, output_request
 from fem_dual.integrate.judge import (GrowthBound, Verdict, check_resolution, judge, judged,
@@ -53,7 +54,7 @@ def run_slabs(sim: "Simulation", config: RunConfig, progress: bool = False,
     """
     run = _Run(sim, config, progress, resume)
     schedule, state = run.schedule, run.state
-    failure: Optional[SolveError] = None
+    failure: Optional[SolveError] = run.below_data_floor()
     while failure is None and not schedule.done():
         failure = run.over_budget()  # --rtol: the cost predicted from the slabs so far
         if failure is not None:
@@ -95,7 +96,8 @@ class _Run:
         self.tic = time.perf_counter()
         self.sim, self.config, self.comm = sim, config, sim.comm
         scene, root = sim.scene, sim.comm.rank == 0
-        self.acc = Accumulator(config) if root else None
+        self.floor = data_floor(scene, config.x0, config.v0, config.T) if root else None
+        self.acc = Accumulator(config, self.floor) if root else None
         # bad or mismatched files to resume, an output directory that cannot take our files:
         # bad input, on every rank
         restart = input_on_root(self.comm, lambda: Restart(config, scene.name)) if resume \
@@ -221,6 +223,30 @@ class _Run:
             return None
         return Verdict("cut", None, f"the force has a kink (abs) at t = {at:.12g} inside the "
                        "slab: it ends there")
+
+    def below_data_floor(self) -> Optional[SolveError]:
+        """The failure that refuses a tolerance the run cannot vouch for before any slab: the
+        data floor (fem_dual.integrate.conditioning) at T beyond what the tolerance allows
+        (as the estimate's, ACCEPT_GLOBAL with --rtol); None otherwise. The same on every
+        rank."""
+        message = None
+        if self.floor is not None:
+            tol, w = self.config.tolerance, self.weights
+            # (relative to the motion's scale as it grows, at least the start's, as the
+            # error weights measure it)
+            scales = np.maximum(self.floor.scale, [w.scale_x, w.scale_v])
+            floor = self.floor.floor
+            allowed = tol.refuse_factor * (tol.atol + tol.rtol * scales)
+            if (floor > allowed).any():
+                needed = float((floor / scales).max()) / tol.refuse_factor
+                x, v = self.floor.final()
+                message = (f"the round-off of M and K alone moves this motion by {x:.3g} in x "
+                           f"and {v:.3g} in v by T = {self.config.T:g} (its modes are close "
+                           f"to coalescing or stiff), more than the tolerance ({tol.label}) "
+                           f"allows; no float64 answer can be vouched for: use --rtol "
+                           f"{_rounded_up(needed):g} or looser, or a shorter --T")
+        message = bcast(self.comm, message)
+        return None if message is None else SolveError(message, slab=0)
 
     def over_budget(self) -> Optional[SolveError]:
         """With --rtol, once BUDGET_WATCH slabs are accepted: the failure that stops a run
@@ -401,6 +427,14 @@ def _advice(config: RunConfig) -> str:
         return ("use more slabs or cells per slab, a higher degree, or --rtol to choose the "
                 "slab lengths")
     return "loosen --rtol, or raise --cells or --degree"
+
+
+def _rounded_up(value: float) -> float:
+    """value rounded up to one significant digit (a tolerance to suggest)."""
+    if not value > 0:
+        return value
+    power = 10.0 ** np.floor(np.log10(value))
+    return float(np.ceil(value / power) * power)
 
 
 def _interruption(comm: MPI.Comm, schedule: SlabSchedule, k: int,

@@ -16,6 +16,7 @@ from fem_dual.errors import InputError
 from fem_dual.output import (XdmfSeries, lock_directory, series_files, write_arrays,
                              write_polyline, written_by_us)
 from fem_dual.slab.values import VertexValues
+from fem_dual.integrate.conditioning import DataFloor
 from fem_dual.integrate.estimate import SlabEstimate, accumulated_floor
 
 __all__ = ["AcceptedSlab", "SlabBatch", "PartialBatch", "Accumulator", "XdmfSink",
@@ -132,8 +133,9 @@ def _compiled_summaries(batch: SlabBatch) -> Optional[tuple]:
 class Accumulator:
     """Vertex arrays of the whole run and their errors against the reference (rank 0 only)."""
 
-    def __init__(self, config: RunConfig):
+    def __init__(self, config: RunConfig, floor: Optional[DataFloor] = None):
         tic = time.perf_counter()
+        self.floor = floor  # the data floor of the estimate (fem_dual.integrate.conditioning)
         self.flow = None
         if config.uses_reference:
             self.flow = config.scene.reference(config.x0, config.v0)
@@ -166,6 +168,12 @@ class Accumulator:
         self.t.append(t), self.x.append(x), self.v.append(v)
         rows, (peak_x, peak_v), final, glob, local, low, high, drift = (
             _compiled_summaries(batch) or _summaries(batch, keep))
+        if self.floor is not None:  # at least the data floor, at every vertex and slab end
+            at = self.floor.at(t)
+            rows = np.maximum(rows, at.max(axis=1, initial=0.0))
+            peak_x, peak_v = np.maximum((peak_x, peak_v), at.max(axis=0, initial=0.0))
+            final = np.maximum(final, self.floor.at([t[-1]])[0]) if len(t) else final
+            glob = np.maximum(glob, self.floor.at(batch.t0 + batch.dt).max(axis=1))
         self.est_rows.append(rows)
         self.est_x, self.est_v = max(self.est_x, peak_x), max(self.est_v, peak_v)
         self.est_final = (float(final[0]), float(final[1]))
@@ -231,8 +239,15 @@ class Accumulator:
     def estimate(self) -> Dict[str, Optional[float]]:
         if not self.t:
             return {"x_max": None, "v_max": None, "final": None}
+        floor = (None, None) if self.floor is None else self._floor_at_end()
         return {"x_max": self.est_x, "v_max": self.est_v, "final": max(self.est_final),
-                "final_x": self.est_final[0], "final_v": self.est_final[1]}
+                "final_x": self.est_final[0], "final_v": self.est_final[1],
+                "data_floor_x": floor[0], "data_floor_v": floor[1]}
+
+    def _floor_at_end(self) -> Tuple[float, float]:
+        """The data floor (x, v) at the last output time."""
+        x, v = self.floor.at([self.t[-1][-1]])[0] if len(self.t[-1]) else (0.0, 0.0)
+        return float(x), float(v)
 
     def error(self) -> Dict[str, Optional[float]]:
         if not self.t or self.flow is None:
@@ -240,7 +255,10 @@ class Accumulator:
         fx, fv = self.final_err
         return {"x_max": float(self.err_x), "v_max": float(self.err_v),
                 "final": None if fx is None else max(fx, fv), "final_x": fx, "final_v": fv,
-                "reference_lost_at": self.reference_lost_at}
+                "reference_lost_at": self.reference_lost_at,
+                # errors below this the reference cannot tell: it is exact only for M and K
+                # within their round-off too (the data floor)
+                "reference_floor": None if self.floor is None else max(self._floor_at_end())}
 
 
 def _fields(vals: VertexValues, slab: AcceptedSlab) -> Dict[str, np.ndarray]:
