@@ -69,10 +69,11 @@ def check_resolution(rate: Optional[float], dt: float, cells: int, degree: int) 
     noise, however well solved."""
     h = dt / cells
     if rate is not None and rate * h > degree:
-        factor = math.ceil(rate * h / degree)
+        factor = rate * h / degree
+        times = f"{math.ceil(factor)}" if factor < 1e6 else f"{factor:.3g}"
         raise SolveError(f"under-resolved: the fastest mode (|lambda| = {rate:.4g}) turns "
                          f"{rate * h:.3g} radians per time cell, more than degree {degree} can "
-                         f"follow; use {factor}x more slabs or cells per slab, or a higher "
+                         f"follow; use {times}x more slabs or cells per slab, or a higher "
                          "degree")
 
 

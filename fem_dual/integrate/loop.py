@@ -41,6 +41,7 @@ if TYPE_CHECKING:
 __all__ = ["run_slabs", "BUDGET_WATCH"]
 
 BUDGET_WATCH = 8  # accepted slabs before the cost of the rest is predicted (--max-slabs)
+MAX_SUGGESTED_RTOL = 1e-2  # a data floor needing a looser --rtol than this: only a shorter --T
 
 
 def run_slabs(sim: "Simulation", config: RunConfig, progress: bool = False,
@@ -240,11 +241,13 @@ class _Run:
             if (floor > allowed).any():
                 needed = float((floor / scales).max()) / tol.refuse_factor
                 x, v = self.floor.final()
+                advice = ("shorten --T" if needed > MAX_SUGGESTED_RTOL else
+                          f"use --rtol {_rounded_up(needed):g} or looser, or a shorter --T")
                 message = (f"the round-off of M and K alone moves this motion by {x:.3g} in x "
-                           f"and {v:.3g} in v by T = {self.config.T:g} (its modes are close "
-                           f"to coalescing or stiff), more than the tolerance ({tol.label}) "
-                           f"allows; no float64 answer can be vouched for: use --rtol "
-                           f"{_rounded_up(needed):g} or looser, or a shorter --T")
+                           f"and {v:.3g} in v by T = {self.config.T:g} (it grows with the "
+                           f"horizon, and with modes close to coalescing), more than the "
+                           f"tolerance ({tol.label}) allows; no float64 answer can be vouched "
+                           f"for: {advice}")
         message = bcast(self.comm, message)
         return None if message is None else SolveError(message, slab=0)
 

@@ -80,6 +80,10 @@ def _decomposition(scene: LinearScene) -> tuple:
         return None, (f"the modes of (K, M) are nearly dependent (condition number "
                       f"{cond:.3g}, near flutter or a repeated frequency)")
     if not is_spd(Ar):
+        lam = np.linalg.eigvals(modes[1])
+        if (lam.imag[lam.real <= 0] != 0).any():
+            return None, ("a pair of modes of (K, M) grows as it oscillates (complex "
+                          "eigenvalues with real part <= 0: far past the flutter load)")
         return None, "a mode of (K, M) does not oscillate (zero or negative stiffness)"
     return modes, None
 

@@ -158,3 +158,6 @@ def test_modal_coordinates_need_a_linear_scene_with_oscillating_modes():
         RunConfig.create("ziegler", base="middle")
     with pytest.raises(InputError, match="does not oscillate"):  # beyond the divergence load
         RunConfig.create("linear", {"dofs": "2", "K": "1,0,0,-1"}, coordinates="modal")
+    # far past a flutter load: a growing oscillation, not a missing stiffness
+    with pytest.raises(InputError, match="grows as it oscillates"):
+        RunConfig.create("column", {"links": "10", "P": "0.5"}, coordinates="modal")
