@@ -28,7 +28,7 @@ from typing import Dict, Optional
 import numpy as np
 from mpi4py import MPI
 
-from fem_dual.analysis.flutter import DUAL_REL_TOL, GrowthFit, fit_growth
+from fem_dual.analysis.flutter import DUAL_REL_TOL, GrowthFit, bisect, fit_growth
 from fem_dual.config import RunConfig
 from fem_dual.errors import InputError, SolveError
 from fem_dual.inputs import output_path
@@ -133,10 +133,7 @@ def continuum_flutter(base: RunConfig, comm: MPI.Comm = MPI.COMM_WORLD,
     if grows(0.0):
         raise SolveError(f"the dual simulation grows without load (rate {zero.rate:.3g} +- "
                          f"{zero.noise:.3g}) where the eigenvalues do not: under-resolved")
-    lo, hi = _bracket(grows, eigen)
-    while hi - lo > REL_WIDTH * hi:
-        mid = 0.5 * (lo + hi)
-        lo, hi = (lo, mid) if grows(mid) else (mid, hi)
+    lo, hi = bisect(grows, *_bracket(grows, eigen), REL_WIDTH)
     dual_s = time.perf_counter() - tic
     files = _write(fits, scene, found.bracket[0], hi, out, comm) if out is not None else []
     return {"eigen": eigen, "dual": 0.5 * (lo + hi), "eigen_s": eigen_s, "dual_s": dual_s,

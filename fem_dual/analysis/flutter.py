@@ -25,7 +25,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, replace
-from typing import Callable, Dict, Optional
+from typing import Callable, Dict, Optional, Tuple
 
 import numpy as np
 import scipy.linalg as sla
@@ -36,7 +36,7 @@ from fem_dual.integrate.api import run
 from fem_dual.errors import InputError, SolveError
 from fem_dual.scenes.linear import LinearScene
 
-__all__ = ["GrowthFit", "fit_growth", "growth_rate", "critical_load", "eigen_rate",
+__all__ = ["GrowthFit", "fit_growth", "growth_rate", "critical_load", "bisect", "eigen_rate",
            "eigen_tolerance", "dual_fit", "dual_rate", "flutter", "DUAL_REL_TOL",
            "EIGEN_REL_TOL", "RESOLVED_GROWTH"]
 
@@ -171,10 +171,17 @@ def critical_load(rate: Callable[[float], float], tol: float, first: float = 0.2
         lo, hi = hi, 2 * hi
         if hi > max_load:
             raise InputError(f"no instability found for P up to {max_load:g}")
+    lo, hi = bisect(lambda P: rate(P) > tol, lo, hi, rel_width)
+    return 0.5 * (lo + hi)
+
+
+def bisect(unstable: Callable[[float], bool], lo: float, hi: float,
+           rel_width: float) -> Tuple[float, float]:
+    """(lo, hi) with lo stable and hi unstable, narrowed from a bracket to rel_width * hi."""
     while hi - lo > rel_width * hi:
         mid = 0.5 * (lo + hi)
-        lo, hi = (lo, mid) if rate(mid) > tol else (mid, hi)
-    return 0.5 * (lo + hi)
+        lo, hi = (lo, mid) if unstable(mid) else (mid, hi)
+    return lo, hi
 
 
 def _with_load(scene: LinearScene, P: float) -> LinearScene:

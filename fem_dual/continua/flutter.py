@@ -101,7 +101,7 @@ def _state(lam: np.ndarray) -> Optional[str]:
 
 
 def flutter_load(eigenvalues: Callable[[float], np.ndarray], step: float, P_max: float,
-                 tol: float = 1e-9, count: int = 8) -> FlutterResult:
+                 tol: float = 1e-9, count: int = 8, start: float = 0.0) -> FlutterResult:
     """The smallest load at which the lowest `count` eigenvalues stop being real and positive.
 
     Args:
@@ -110,6 +110,8 @@ def flutter_load(eigenvalues: Callable[[float], np.ndarray], step: float, P_max:
         P_max: scan no further (ValueError if the spectrum is still real there).
         tol: the width of the final bracket.
         count: how many of the eigenvalues of smallest modulus are watched.
+        start: the scan starts here (its spectrum must be real and positive: a load known to
+            be below the critical one, such as a coarser mesh's just below its own).
 
     Returns:
         The :class:`FlutterResult`.
@@ -122,9 +124,9 @@ def flutter_load(eigenvalues: Callable[[float], np.ndarray], step: float, P_max:
         lam = lowest_eigenvalues(eigenvalues(P), count)
         return _state(lam), lam
 
-    if state(0.0)[0] is not None:
-        raise ValueError("flutter_load: the spectrum is not real and positive without load")
-    lo, hi = 0.0, step
+    if state(start)[0] is not None:
+        raise ValueError(f"flutter_load: the spectrum is not real and positive at P = {start}")
+    lo, hi = start, start + step
     kind, lam = state(hi)
     while kind is None:
         if hi >= P_max:
