@@ -104,7 +104,7 @@ class _Run:
         restart = input_on_root(self.comm, lambda: Restart(config, scene.name)) if resume \
             else None
         self.xdmf = None if config.out is None else input_on_root(
-            self.comm, lambda: XdmfSink(config, scene.name, restart))
+            self.comm, lambda: XdmfSink(config, scene.name, restart, self.floor))
         self.bar = ProgressSink(config.T) if (progress and root) else None
         self.sinks = [s for s in (self.acc, self.xdmf, self.bar) if s is not None]
         self.timings = {"compile_s": sim.charged_setup(), "solve_s": 0.0, "estimate_s": 0.0,

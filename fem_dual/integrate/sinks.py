@@ -261,10 +261,14 @@ class Accumulator:
                 "reference_floor": None if self.floor is None else max(self._floor_at_end())}
 
 
-def _fields(vals: VertexValues, slab: AcceptedSlab) -> Dict[str, np.ndarray]:
-    return {"t": slab.t0 + slab.dt * vals.s, "xi": vals.xi, "eta": vals.eta, "x_hat": vals.x,
-            "v_hat": vals.v, "hamiltonian": vals.hamiltonian,
-            "error_estimate": SlabBatch.of(slab).reported()[0].max(axis=-1)}
+def _fields(vals: VertexValues, slab: AcceptedSlab,
+            floor: Optional[DataFloor] = None) -> Dict[str, np.ndarray]:
+    t = slab.t0 + slab.dt * vals.s
+    estimate = SlabBatch.of(slab).reported()[0].max(axis=-1)
+    if floor is not None:  # at least the data floor, as in the JSON
+        estimate = np.maximum(estimate, floor.at(t).max(axis=1))
+    return {"t": t, "xi": vals.xi, "eta": vals.eta, "x_hat": vals.x, "v_hat": vals.v,
+            "hamiltonian": vals.hamiltonian, "error_estimate": estimate}
 
 
 def _restart(slab: AcceptedSlab) -> Dict[str, np.ndarray]:
@@ -280,9 +284,10 @@ class XdmfSink:
     (rank 0); the trajectory polyline when the run ends, however it ends. A fresh run first
     removes the files of an earlier run of the scene, so nothing stale looks current."""
 
-    def __init__(self, config: RunConfig, name: str, resume=None):
+    def __init__(self, config: RunConfig, name: str, resume=None,
+                 floor: Optional[DataFloor] = None):
         self.out: Path = config.out
-        self.name = name
+        self.name, self.floor = name, floor
         self.fields: Optional[FieldSeries] = None
         self.identity = config.identity()
         self.series: Optional[XdmfSeries] = resume.series if resume is not None else None
@@ -313,7 +318,7 @@ class XdmfSink:
     def add(self, slab: AcceptedSlab) -> None:
         tic = time.perf_counter()
         vals = slab.values
-        fields, restart = _fields(vals, slab), _restart(slab)
+        fields, restart = _fields(vals, slab, self.floor), _restart(slab)
         if self.series is None:
             self.series = XdmfSeries(self.out / f"{self.name}.xdmf", slab.dt * vals.s,
                                      {k: a.shape for k, a in fields.items()},

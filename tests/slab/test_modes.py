@@ -82,3 +82,16 @@ def test_no_data_floor_for_a_damped_or_nonlinear_scene():
     assert data_floor(damped.scene, damped.x0, damped.v0, damped.T) is None
     curl = RunConfig.create("curl3d")
     assert data_floor(curl.scene, curl.x0, curl.v0, curl.T) is None
+
+
+def test_the_data_floor_reaches_the_fields_written(tmp_path):
+    """Fixed slabs resolve P = 20.06 far below its data floor: the estimate the JSON and the
+    XDMF series report is the floor."""
+    from fem_dual.output import read_series
+
+    config = _beck(20.06, T=20.0, slabs=40, cells=16, degree=5, out=str(tmp_path))
+    result = run(config)
+    floor = data_floor(config.scene, config.x0, config.v0, config.T)
+    assert result.estimate["final_v"] == pytest.approx(floor.final()[1])
+    _, _, steps = read_series(tmp_path / "beck.xdmf")
+    assert steps[-1]["error_estimate"].max() == pytest.approx(floor.final().max())
