@@ -174,8 +174,7 @@ def block_motion(Kr: np.ndarray, slices: List[slice], r0: np.ndarray, rv0: np.nd
     for s in (s for s in slices if s.stop - s.start > 1):
         b = s.stop - s.start
         A = np.block([[np.zeros((b, b)), np.eye(b)], [-Kr[s, s], np.zeros((b, b))]])
-        z0 = np.concatenate([r0[s], rv0[s]])
-        z = np.array([sla.expm(A * a) @ z0 for a in t]).reshape(len(t), 2 * b)
+        z = sla.expm(np.multiply.outer(t, A)) @ np.concatenate([r0[s], rv0[s]])  # (m, 2b)
         r[:, s], rv[:, s] = z[:, :b], z[:, b:]
     return r, rv
 

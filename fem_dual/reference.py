@@ -176,8 +176,12 @@ def _block_modes(M: np.ndarray, K: np.ndarray) -> Optional[Tuple[np.ndarray, np.
     better conditioned than EIGEN_MAX_CONDITION."""
     from fem_dual.modes import real_modes
 
-    U, Kr = real_modes(M, K)[:2]
-    if U.shape != M.shape or not np.isfinite(U).all() or not (
+    try:
+        with np.errstate(all="ignore"):
+            U, Kr = real_modes(M, K)[:2]
+    except (np.linalg.LinAlgError, ValueError):  # overflow to inf or NaN in the pencil
+        return None
+    if U.shape != M.shape or not (np.isfinite(U).all() and np.isfinite(Kr).all()) or not (
             np.linalg.cond(U) <= EIGEN_MAX_CONDITION):
         return None
     return U, Kr

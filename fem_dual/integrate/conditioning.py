@@ -104,6 +104,7 @@ def data_floor(scene, x0: np.ndarray, v0: np.ndarray, T: float) -> Optional[Data
     x, v = np.abs(r @ U.T).max(axis=1), np.abs(rv @ U.T).max(axis=1)
     size = np.maximum.accumulate(np.column_stack([x, v]), axis=0)
     size = np.maximum(size, [np.abs(x0).max(initial=0.0), np.abs(v0).max(initial=0.0)])
-    if not (np.isfinite(worst).all() and np.isfinite(size).all()):
+    if not np.isfinite(size).all():  # the motion itself overflows: the slabs' guards judge it
         return None
+    worst[~np.isfinite(worst)] = np.inf  # a perturbed block's exponential overflowed
     return DataFloor(t, ESTIMATE_SAFETY * np.maximum.accumulate(worst, axis=0), size)

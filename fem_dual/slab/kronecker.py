@@ -336,6 +336,10 @@ class _FastDiagonalisation:
             block[0::2, 1::2] = skew
             block[1::2, 0::2] = skew.T
             block[1::2, 1::2] = dt * w2[k] * Mm + S / dt
+            if not np.isfinite(block).all():  # dt w^2 beyond float64 (a horizon of 1e300)
+                raise SolveError(f"the slab of length {dt:.3g} overflows float64 in its time "
+                                 f"matrices (frequency {np.sqrt(w2[k]):.3g}); shorten --T or "
+                                 "use more slabs")
             self.factors.append(sla.cholesky_banded(_banded(block, 2 * pd + 1), lower=False))
         # small blocks: their inverses, applied to all modes at once (no loop per mode)
         self.inverses = None

@@ -71,9 +71,13 @@ def _decomposition(scene: LinearScene) -> tuple:
     M, K = scene.mass_matrix(), scene.stiffness_matrix()
     if not (np.isfinite(M).all() and np.isfinite(K).all()):
         return None, "the modes of (K, M) cannot be computed"
-    modes = real_modes(M, K)
+    try:
+        with np.errstate(all="ignore"):
+            modes = real_modes(M, K)
+    except (np.linalg.LinAlgError, ValueError):  # overflow to inf or NaN in the pencil
+        return None, "the modes of (K, M) cannot be computed"
     U, Ar = modes[0], modes[2]
-    if U.shape != (scene.n, scene.n) or not np.isfinite(U).all():
+    if U.shape != (scene.n, scene.n) or not all(np.isfinite(a).all() for a in modes):
         return None, "the modes of (K, M) cannot be computed"
     cond = np.linalg.cond(U)
     if not cond < MAX_CONDITION:
