@@ -196,8 +196,8 @@ def coupling(M: np.ndarray, K: np.ndarray, U: np.ndarray, slices: List[slice],
     of each block (Kr_bb its diagonal block of `full`) formed in extended precision (numpy's
     longdouble). On the diagonal block it refines Kr_bb; in the other rows it is the block's
     coupling to the other blocks. K Ub cancels in the slow modes of a stiff system (Beck's
-    column: |K| 7e6, the slow block's entries 120): its float64 round-off, eps |K| |Ub|, moved
-    the motion near the flutter load by 1.6e-6 over T = 20 (50-digit reference); refined,
+    column: |K| 7e6, the slow block's entries 120): its float64 round-off, eps |K| |Ub|, moves
+    the motion near the flutter load by 1.6e-6 over T = 20 (50-digit reference); refined, by
     5.6e-10."""
     C = np.zeros_like(full)
     columns = np.concatenate([np.arange(s.start, s.stop) for s, r in zip(slices, refine) if r]
@@ -221,11 +221,11 @@ def decoupled(M: np.ndarray, K: np.ndarray, U: np.ndarray, slices: List[slice],
               refine: np.ndarray, full: np.ndarray) -> np.ndarray:
     """U with the columns of every block b in `refine` moved towards its invariant subspace
     (one Newton step): Ub + sum_c Uc X_cb, Kr_cc X_cb - X_cb Kr_bb = -C_cb, C_cb the block's
-    coupling into block c (`coupling`; full = U^-1 M^-1 K U in float64). QZ's eigenvectors are exact for a K perturbed by
-    eps |K|: in the slow modes of a stiff system that coupling (5e-7 between Beck's two
-    slowest modes at P = 20, 20 elements, 22 apart) is dropped with the blocks off the
-    diagonal, and nearly parallel columns multiply it into the motion (1.5e-7 of a state of 0.1
-    over T = 20; after the step 7e-10)."""
+    coupling into block c (`coupling`; full = U^-1 M^-1 K U in float64). QZ's eigenvectors are
+    exact for a K perturbed by eps |K|: in the slow modes of a stiff system that coupling (5e-7
+    between Beck's two slowest modes at P = 20, 20 elements, 22 apart) would be dropped with the
+    blocks off the diagonal, and nearly parallel columns multiply it into the motion (1.5e-7 of
+    a state of 0.1 over T = 20; after the step 7e-10)."""
     C = coupling(M, K, U, slices, refine, full)
     X = np.zeros_like(full)
     single = np.array([s.stop - s.start == 1 for s in slices])

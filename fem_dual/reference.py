@@ -20,8 +20,8 @@ from typing import Callable, Optional, Tuple
 import numpy as np
 
 
-__all__ = ["LinearFlow", "EigenFlow", "BlockFlow", "IVPFlow", "first_order_matrix", "linear_reference",
-           "linear_flow", "EIGEN_MAX_CONDITION"]
+__all__ = ["LinearFlow", "EigenFlow", "BlockFlow", "IVPFlow", "first_order_matrix",
+           "linear_reference", "linear_flow", "EIGEN_MAX_CONDITION"]
 
 EIGEN_MAX_CONDITION = 1e6  # eigenvectors beyond this (near flutter, defective): expm instead
 
@@ -153,7 +153,7 @@ def first_order_pencil(M: np.ndarray, K: np.ndarray, D: Optional[np.ndarray] = N
 def linear_flow(M: np.ndarray, K: np.ndarray, D: Optional[np.ndarray], x0: np.ndarray,
                 v0: np.ndarray):
     """The reference of M x'' + D x' + K x = 0: BlockFlow for an undamped system with modes
-    about to coalesce or a complex pair (EigenFlow was 2.4e-4 off there: Beck's column at 20
+    about to coalesce or a complex pair (EigenFlow is 2.4e-4 off there: Beck's column at 20
     elements, P = 20.055; BlockFlow, whose blocks are two-sided Rayleigh quotients, within the
     data floor); else EigenFlow when its eigenvectors are well conditioned
     (EIGEN_MAX_CONDITION); else BlockFlow where the system is undamped; else LinearFlow (expm)."""

@@ -1,11 +1,12 @@
-"""The data floor of a linear run: how far the exact motion moves when M and K change by their
-own round-off (one unit in the last place of every entry). No float64 computation of the motion
-can be closer to the exact one than that, whatever its time discretisation, and the companion's
-difference does not see it (answer and companion share the round-off of the modes). Near a
-flutter load it is large: Beck's column at 20 elements, P = 20.055, started in its two slowest
-modes, is 6.8e-7 off over T = 20 (a 50-digit eigen-decomposition of the exported M and K) while
-the slabs' estimate said 5.8e-9; one-ulp perturbations of M and K move that exact motion by
-4e-8 .. 5.4e-7.
+"""The data floor of a linear run: how far the exact motion moves when M, K and the modal
+blocks change by their own round-off (one unit in the last place; in extended precision where
+fem_dual.modes formed a block's residual in it). No computation of the motion in those modes can
+be closer to the exact one than that, whatever its time discretisation, and the companion's
+difference does not see it (answer and companion share the modes). Near a flutter load it is
+large: for Beck's column at 20 elements, P = 20.055, started in its two slowest modes, one-ulp
+float64 perturbations of M and K move the exact motion by 4e-8 .. 5.4e-7 over T = 20 (a 50-digit
+eigen-decomposition), which is why the slow blocks are refined; with them the floor is 8.7e-10
+in v, the error 3.05e-9.
 
 The floor is measured, not bounded: in the modes of the pencil (fem_dual.modes, U and the
 block-diagonal Kr) a perturbation E of K and F of M changes Kr by U^-1 M^-1 (E U - F U Kr) to

@@ -63,9 +63,10 @@ class ModalScene(LinearScene):
 
 @functools.lru_cache(maxsize=4)
 def _decomposition(scene: LinearScene) -> tuple:
-    """((U, Kr, Ar, omega), None) of the scene's modes (see fem_dual.modes.real_modes), or (None, why they
-    cannot be used). Once per scene: the check of `coordinates` and the ModalBasis of a run and
-    of its companion share it (a QZ of the pencil costs 0.2 s for 200 links)."""
+    """((U, Kr, Ar, omega), None) of the scene's modes (see fem_dual.modes.real_modes), or
+    (None, why they cannot be used). Once per scene: the check of `coordinates` and the
+    ModalBasis of a run and of its companion share it (a QZ of the pencil costs 0.2 s for 200
+    links)."""
     if scene.A is not None or scene.B is not None:
         return None, "H's weights A, B were given in physical coordinates"
     M, K = scene.mass_matrix(), scene.stiffness_matrix()
