@@ -46,11 +46,6 @@ class DataFloor:
     floor: np.ndarray  # (TIMES, 2)
     scale: np.ndarray  # (TIMES, 2): the running max of |x| and |v| of the motion, from the start
 
-    def relative(self) -> np.ndarray:
-        """(2,): the largest floor of x's and v's errors relative to the motion's scale (a
-        growing motion's floor grows with it)."""
-        return (self.floor / np.maximum(self.scale, np.finfo(float).tiny)).max(axis=0)
-
     def at(self, t: np.ndarray) -> np.ndarray:
         """(len(t), 2): the floor of x's and v's errors at the times t (0 at the start)."""
         t = np.asarray(t, dtype=float)
