@@ -6,13 +6,15 @@ and the data floor of the error estimate (fem_dual.integrate.conditioning) stand
 """
 from __future__ import annotations
 
+import functools
+import hashlib
 from typing import List, Tuple
 
 import numpy as np
 import scipy.linalg as sla
 
-__all__ = ["real_modes", "block_slices", "block_motion", "cancelling", "coupling", "decoupled",
-           "CANCELLATION", "GROUP_COSINE", "MAX_BLOCK_SCALING"]
+__all__ = ["real_modes", "compute_real_modes", "block_slices", "block_motion", "cancelling",
+           "coupling", "decoupled", "CANCELLATION", "GROUP_COSINE", "MAX_BLOCK_SCALING"]
 
 GROUP_COSINE = 0.9999  # modes whose spans meet at an M-cosine above this share a block (kept
 # apart, the two would give U a condition number above 140)
@@ -21,6 +23,35 @@ CANCELLATION = 1e2  # a block whose K Ub cancels more than this is refined (refi
 
 
 def real_modes(M: np.ndarray, K: np.ndarray) -> Tuple[np.ndarray, ...]:
+    """`compute_real_modes` once per pencil: the slabs' modal coordinates, the data floor and
+    the reference of a run share it (read-only arrays; 23 s for n = 1000)."""
+    return _cached(_Pencil(M, K))
+
+
+class _Pencil:
+    """(M, K) hashable by a digest of their values."""
+
+    def __init__(self, M: np.ndarray, K: np.ndarray):
+        self.M, self.K = M, K
+        self.key = (M.shape, K.shape, hashlib.sha256(np.ascontiguousarray(M).tobytes()).digest(),
+                    hashlib.sha256(np.ascontiguousarray(K).tobytes()).digest())
+
+    def __hash__(self) -> int:
+        return hash(self.key)
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, _Pencil) and self.key == other.key
+
+
+@functools.lru_cache(maxsize=4)
+def _cached(pencil: _Pencil) -> Tuple[np.ndarray, ...]:
+    modes = compute_real_modes(pencil.M, pencil.K)
+    for array in modes:
+        array.flags.writeable = False
+    return modes
+
+
+def compute_real_modes(M: np.ndarray, K: np.ndarray) -> Tuple[np.ndarray, ...]:
     """(U, Kr, Ar, omega): columns spanning the modes of M^-1 K, sorted by frequency, and Kr, the
     diagonal blocks of U^-1 M^-1 K U. A real eigenvector is one column of unit M-norm; a complex
     pair's two columns are an M-orthonormal basis of (Re u, Im u); modes whose spans are nearly
