@@ -116,15 +116,17 @@ class _Run:
                                      max(start_rate, 1 / config.T)) if root else None)
         # the zero base damps what the slabs do not resolve: no resolution guard, no growth bound
         self.guarded = scene.linear and config.base_state != "zero"
-        self.rate = scene.fastest_rate(config.x0, config.v0) if (
-            self.guarded or (scene.linear and config.rtol is not None)) else None
-        if not self.guarded and self.rate is not None and root:
+        self.rate = None
+        if self.guarded:
+            self.rate = scene.fastest_rate(config.x0, config.v0)
+        elif scene.linear and config.rtol is not None:
             # the zero base drops a mode once: the first slab need follow only the modes left
             # when the fastest, together within half the tolerance, are dropped
             self.rate = scene.fastest_rate(config.x0, config.v0, relative=0.5 * config.rtol,
-                                           scales=(self.weights.scale_x, self.weights.scale_v))
-        if not self.guarded and self.rate is not None and self.comm.size > 1:
-            self.rate = self.comm.bcast(self.rate, root=0)
+                                           scales=(self.weights.scale_x, self.weights.scale_v)
+                                           ) if root else None
+            if self.comm.size > 1:
+                self.rate = self.comm.bcast(self.rate, root=0)
         # (a sparse scene has no spectrum to bound its motion by)
         self.bound = GrowthBound(scene, config.x0, config.v0) if (
             self.guarded and root and not scene.sparse) else None
