@@ -8,9 +8,13 @@ growing oscillation); one may also pass through 0 (divergence, static buckling).
 load is the smallest P at which the spectrum is no longer real.
 
 :func:`flutter_load` scans P = 0, step, 2 step, ... for the first load with a complex pair among
-the lowest `count` eigenvalues, then bisects to `tol`; it reports the bracket and
-Omega^2 = Re lambda of the pair at its upper end (the flutter frequency squared). A negative
-real eigenvalue met first is reported as divergence.
+the lowest `count` eigenvalues, then narrows the bracket to `tol` by regula falsi (Illinois) on
+the discriminant of the two modes about to coalesce, which is linear in P there (a handful of
+eigen-solves where bisection takes about 25; the convergence table of Beck's column in 6 s
+instead of 17 s); it reports the bracket and Omega^2 = Re lambda of the pair at its upper end
+(the flutter frequency squared). A negative real eigenvalue met first is reported as
+divergence (bisected). Near the load the classification itself is round-off: at 200 elements
+the lowest eigenvalues read as complex or real within about 5e-8 of it, whatever the search.
 
 For Beck's column with theta condensed (:class:`fem_dual.continua.condense.CondensedBeck`) the
 pencil is taken in flexibility form: with K_c(P) = K_c - P G_P and F = K_c^-1,
@@ -124,28 +128,61 @@ def flutter_load(eigenvalues: Callable[[float], np.ndarray], step: float, P_max:
         lam = lowest_eigenvalues(eigenvalues(P), count)
         return _state(lam), lam
 
-    if state(start)[0] is not None:
+    kind, lam = state(start)
+    if kind is not None:
         raise ValueError(f"flutter_load: the spectrum is not real and positive at P = {start}")
-    lo, hi = start, start + step
+    lo, hi, lo_lam = start, start + step, lam
     kind, lam = state(hi)
     while kind is None:
         if hi >= P_max:
             raise ValueError(f"flutter_load: the spectrum stays real up to P = {P_max}")
-        lo, hi = hi, min(hi + step, P_max)
+        lo, hi, lo_lam = hi, min(hi + step, P_max), lam
         kind, lam = state(hi)
+    d_lo, d_hi, kept = _discriminant(lo_lam), _discriminant(lam), 0
     while hi - lo > tol:
-        mid = 0.5 * (lo + hi)
+        mid = _next_load(lo, hi, d_lo, d_hi, tol)
         mid_kind, mid_lam = state(mid)
+        d_mid = _discriminant(mid_lam)
         if mid_kind is None:
-            lo = mid
+            lo, d_lo, kept = mid, d_mid, (kept + 1 if kept > 0 else 1)
+            if kept > 1 and d_hi is not None:  # the same end kept twice (Illinois): the
+                d_hi *= 0.5  # other end's value halves
         else:
-            hi, kind, lam = mid, mid_kind, mid_lam
+            hi, kind, lam, d_hi, kept = mid, mid_kind, mid_lam, d_mid, (
+                kept - 1 if kept < 0 else -1)
+            if kept < -1 and d_lo is not None:
+                d_lo *= 0.5
     if kind == "flutter":
         pair = lam[np.abs(lam.imag) > COMPLEX_RTOL * np.abs(lam)]
         omega2 = float(pair[0].real)
     else:
         omega2 = float(lam.real[np.argmin(lam.real)])
     return FlutterResult(kind, 0.5 * (lo + hi), (lo, hi), omega2, lam, calls)
+
+
+def _discriminant(lam: np.ndarray) -> Optional[float]:
+    """(lambda_a - lambda_b)^2 of the two modes about to coalesce, relative to their size:
+    positive while the spectrum is real (the closest two), negative past a flutter load (the
+    widest complex pair), linear in P through the coalescence (lambda has a square-root branch
+    point there); None where an eigenvalue has crossed 0 (divergence)."""
+    if len(lam) < 2 or _state(lam) == "divergence":
+        return None
+    size = float(np.abs(lam).max())
+    if _state(lam) == "flutter":
+        return -float((2 * np.abs(lam.imag)).max() / size) ** 2
+    real = np.sort(lam.real)
+    return float(np.diff(real).min() / size) ** 2
+
+
+def _next_load(lo: float, hi: float, d_lo, d_hi, tol: float) -> float:
+    """The next trial load in (lo, hi): where the discriminant, linear between the ends,
+    vanishes (regula falsi, whose end values the caller halves when one end is kept twice:
+    Illinois), else the middle; at least tol / 4 inside the bracket, so that a trial next to
+    the load found closes the bracket on it."""
+    if d_lo is None or d_hi is None or not d_lo > 0 > d_hi:
+        return 0.5 * (lo + hi)
+    trial = lo + (hi - lo) * d_lo / (d_lo - d_hi)
+    return min(max(trial, lo + 0.25 * tol), hi - 0.25 * tol)
 
 
 def buckling_load(beck: CondensedBeck) -> float:
