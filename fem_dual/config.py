@@ -228,8 +228,10 @@ class RunConfig:
     @property
     def uses_reference(self) -> bool:
         """Whether the run is compared with its reference: not with --reference none, nor on
-        the sparse path (the eigen-decomposition needs the dense matrices)."""
-        return self.reference != "none" and not self.scene.sparse
+        the sparse path beyond its reference's budget (fem_dual.continua.scenes)."""
+        if self.reference == "none":
+            return False
+        return not self.scene.sparse or self.scene.reference_affordable(self.T)
 
     @property
     def stages(self) -> int:

@@ -29,12 +29,11 @@ def rates(scene, x: np.ndarray, v: np.ndarray) -> Tuple[np.ndarray, ...]:
     along the motion (exact for linear scenes; for a force, its derivatives along v and along a
     by central differences and its second derivative along v by a second difference, all rows
     at once where the force takes them (`_forces`))."""
+    if scene.linear:  # a = -M^-1 (K x + D v), j = -M^-1 (K v + D a), snap = -M^-1 (K a + D j)
+        a = scene.accelerations(x, v)
+        j = scene.accelerations(v, a)
+        return a, j, scene.accelerations(a, j)
     Minv = np.linalg.inv(scene.mass_matrix())
-    if scene.linear:
-        K, D = scene.stiffness_matrix(), scene.damping_matrix()
-        a = -(x @ K.T + v @ D.T) @ Minv.T
-        j = -(v @ K.T + a @ D.T) @ Minv.T
-        return a, j, -(a @ K.T + j @ D.T) @ Minv.T
     with np.errstate(over="ignore", invalid="ignore"):  # (array products: inf, no raise)
         F0 = _forces(scene, x)
         a = F0 @ Minv.T

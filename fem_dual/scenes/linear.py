@@ -139,6 +139,15 @@ class LinearScene(Scene):
         """v' at the state (x0, v0): -M^-1 (K x0 + D v0)."""
         return (self.first_order_matrix() @ np.concatenate([x0, v0]))[self.n:]
 
+    def accelerations(self, x: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """-M^-1 (K x + D v) for each row of x and v (rows, n)."""
+        K, D = self.stiffness_matrix(), self.damping_matrix()
+        return -(x @ K.T + v @ D.T) @ self._mass_inverse.T
+
+    @functools.cached_property
+    def _mass_inverse(self) -> np.ndarray:
+        return np.linalg.inv(self.mass_matrix())
+
     def first_order_matrix(self) -> np.ndarray:
         return first_order_matrix(self.mass_matrix(), self.stiffness_matrix(),
                                   self.damping_matrix())

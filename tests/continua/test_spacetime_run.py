@@ -47,13 +47,17 @@ def test_a_large_continuum_runs_sparse_within_its_estimate(tmp_path, capsys, set
                  "--json"]) == 0
     data = json.loads(capsys.readouterr().out)
     assert data["solver"]["assembly"] == "spacetime" and data["solver"]["base"] == "start"
-    assert data["error"]["x_max"] is None  # (no dense reference on the sparse path)
     assert data["dofs_per_slab"] == 2 * data["cells"] * data["degree"] * 722
     assert all(0 < its < 200 for its in data["solver"]["ksp_iterations"])
     arrays = np.load(out / "cauchy2d_system.npz")
     assert "M" not in arrays and arrays["M_shape"].tolist() == [722, 722]
     ex, ev, scale = _errors(data, arrays)
     assert max(ex, ev) <= data["error_estimate"] <= 1e-5 * scale
+    # the run's own reference (expm_multiply of the sparse operator) sees the same final error
+    reported = data["error"]
+    assert reported["final_x"] == pytest.approx(ex, rel=1e-3, abs=1e-13)
+    assert reported["final_v"] == pytest.approx(ev, rel=1e-3, abs=1e-13)
+    assert max(reported["x_max"], reported["v_max"]) <= data["error_estimate"]
     assert (out / "cauchy2d_fields.xdmf").exists()
 
 
@@ -128,3 +132,27 @@ def test_every_slab_s_companion_starts_from_the_answer(capsys):
     assert answers is not None, solver["ksp_iterations"]  # 3 slabs and 2 tangents
     assert all(c <= 0.7 * a for c, a in zip(solver["companion_ksp_iterations"], answers)), \
         solver
+
+
+def test_output_times_of_a_sparse_run_carry_their_error_and_estimate(capsys):
+    """--t-eval on the sparse path: the dense output between vertices (fem_dual.integrate.dense)
+    with sparse solves, its estimate above its error against the sparse reference."""
+    assert main(["run", "cauchy2d", "--param", "elements=20", "--T", "0.1", "--rtol", "1e-6",
+                 "--t-eval", "0.03,0.0777", "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    out = data["t_eval"]
+    assert out["t"] == [0.03, 0.0777] and len(out["x"]) == 2
+    assert 0 < max(out["error"]["x_max"], out["error"]["v_max"]) <= out["error_estimate"]
+
+
+def test_the_sparse_reference_is_skipped_beyond_its_budget():
+    """Its work grows like dofs x radians of the fastest mode: a horizon whose reference would
+    take minutes is run without one (`error` null), a short one with it."""
+    from fem_dual.continua.scenes import SPARSE_REFERENCE_BUDGET
+
+    short = RunConfig.create("cauchy2d", params=SPARSE, T=0.2)
+    rate = short.scene.fastest_rate()
+    assert short.uses_reference and short.scene.n * rate * 0.2 <= SPARSE_REFERENCE_BUDGET
+    T = 2 * SPARSE_REFERENCE_BUDGET / (short.scene.n * rate)
+    assert not RunConfig.create("cauchy2d", params=SPARSE, T=T).uses_reference
+    assert not RunConfig.create("cauchy2d", params=SPARSE, T=0.2, reference="none").uses_reference
