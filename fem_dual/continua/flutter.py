@@ -10,10 +10,9 @@ load is the smallest P at which the spectrum is no longer real.
 :func:`flutter_load` scans P = 0, step, 2 step, ... for the first load with a complex pair among
 the lowest `count` eigenvalues, then narrows the bracket to `tol` by regula falsi (Illinois) on
 the discriminant of the two modes about to coalesce, which is linear in P there (a handful of
-eigen-solves where bisection takes about 25; the convergence table of Beck's column in 6 s
-instead of 17 s); it reports the bracket and Omega^2 = Re lambda of the pair at its upper end
-(the flutter frequency squared). A negative real eigenvalue met first is reported as
-divergence (bisected). Near the load the classification itself is round-off: at 200 elements
+eigen-solves where bisection takes about 25); it reports the bracket and Omega^2 = Re lambda of
+the pair at its upper end (the flutter frequency squared). A negative real eigenvalue met first
+is reported as divergence (bisected). Near the load the classification itself is round-off: at 200 elements
 the lowest eigenvalues read as complex or real within about 5e-8 of it, whatever the search.
 
 For Beck's column with theta condensed (:class:`fem_dual.continua.condense.CondensedBeck`) the

@@ -158,7 +158,7 @@ class LinearScene(Scene):
         per scene (the resolution guard, the growth bound and the slab-map check all need
         them). Undamped: from the n x n pencil K w = mu M w, lambda = +-sqrt(-mu) with the
         vectors (w, lambda w) from the real modes the modal coordinates use (the rates of a
-        450-dof square in 2.3 s, where the 2n x 2n eig and its least squares took 13 s)."""
+        450-dof square in 2.3 s, where the 2n x 2n eig and its least squares take 13 s)."""
         pencil = self._pencil_modes
         if pencil is None:
             return np.linalg.eig(self.first_order_matrix())
