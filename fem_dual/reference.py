@@ -1,15 +1,17 @@
 """Independent reference solutions of the primal initial-value problem.
 
-Linear scenes: the exact flow exp(t A) of the first-order system z' = A z, z = (x, v): through
-an eigen-decomposition when its eigenvectors are well conditioned (EigenFlow: QZ on (K, M) for
-an undamped system, on the first-order pencil for a damped one), else, for an undamped system,
-mode block by mode block (BlockFlow: near a flutter load), else through scipy's matrix
+Linear scenes: the exact flow exp(t A) of the first-order system z' = A z, z = (x, v): followed
+mode block by mode block for an undamped system whose modes are refined or about to coalesce
+(BlockFlow: slow modes of a stiff system, near a flutter load), else an eigen-decomposition when
+its eigenvectors are well conditioned (EigenFlow: QZ on (K, M) for an undamped system, on the
+first-order pencil for a damped one), else BlockFlow where undamped, else through scipy's matrix
 exponential (LinearFlow); with sparse matrices, expm_multiply (SparseFlow). For a stiff system the
 float64 expm is not a reference: its error is relative to |A| = |M^-1 K| (2.6e10 for a 200-link
 column), and it drifts 4.5e-7 in the slow mode's phase over ten periods, measured against a
 certified 500-bit eigen-decomposition and a 1024-bit Taylor/doubling propagator, which agree bit
-for bit in float64 (benchmarks/hp_reference); EigenFlow is within 6e-12 in x and 9e-11 in v
-of them there (scales 0.1 and 0.51).
+for bit in float64 (benchmarks/hp_reference); the reference there (BlockFlow: its slow modes are
+refined) is within 7e-16 in x and 1.5e-12 in v of them, EigenFlow within 6e-12 and 9e-11 (scales
+0.1 and 0.51).
 Nonlinear scenes: scipy's DOP853 at rtol = 1e-13, atol = 1e-16.
 
 References are evaluated chunk by chunk (one slab at a time, increasing times) so that long runs
@@ -212,10 +214,14 @@ class SparseFlow:
         from scipy.sparse.linalg import expm_multiply
 
         t = np.asarray(t, dtype=float)
+        if np.any(np.diff(t) < 0):
+            raise ValueError("SparseFlow: times must increase within a call")
         a, z = self._at if t[0] >= self._at[0] else (0.0, self.z0)
         z = self._step(z, t[0] - a)
         gaps = np.diff(t)
-        if len(t) > 2 and np.all(np.abs(gaps - gaps.mean()) <= 1e-9 * gaps.mean()):
+        grid = np.linspace(t[0], t[-1], len(t))
+        # equally spaced to a few units in the last place (a slab's vertices): one call
+        if len(t) > 2 and np.abs(t - grid).max() <= 4 * np.finfo(float).eps * np.abs(t).max():
             Z = expm_multiply(self.A, z, start=0.0, stop=t[-1] - t[0], num=len(t),
                               endpoint=True, traceA=0.0)
         else:
@@ -238,16 +244,23 @@ def first_order_pencil(M: np.ndarray, K: np.ndarray, D: Optional[np.ndarray] = N
 def linear_flow(M: np.ndarray, K: np.ndarray, D: Optional[np.ndarray], x0: np.ndarray,
                 v0: np.ndarray):
     """The reference of M x'' + D x' + K x = 0: BlockFlow for an undamped system with modes
-    about to coalesce or a complex pair (EigenFlow is 2.4e-4 off there: Beck's column at 20
-    elements, P = 20.055; BlockFlow, whose blocks are two-sided Rayleigh quotients, within the
-    data floor); else EigenFlow when its eigenvectors are well conditioned
-    (EIGEN_MAX_CONDITION); else BlockFlow where the system is undamped; else LinearFlow (expm)."""
-    from fem_dual.modes import block_slices
+    about to coalesce, a complex pair, or slow modes that fem_dual.modes refines (EigenFlow is
+    2.4e-4 off at Beck's column, 20 elements, P = 20.055; BlockFlow, whose blocks are two-sided
+    Rayleigh quotients, within the data floor); else EigenFlow when its eigenvectors are well
+    conditioned (EIGEN_MAX_CONDITION); else BlockFlow where the system is undamped; else
+    LinearFlow (expm)."""
+    from fem_dual.modes import block_slices, cancelling
 
     x0, v0 = np.asarray(x0, float), np.asarray(v0, float)
     modes = None if (D is not None and np.any(D)) else _block_modes(M, K)
-    if modes is not None and len(block_slices(modes[1])) < len(M):
-        return BlockFlow(modes, x0, v0)  # modes about to coalesce, or a complex pair
+    if modes is not None:
+        U, Kr = modes
+        slices = block_slices(Kr)
+        if len(slices) < len(M) or cancelling(K, U, slices, K @ U).any():
+            # modes about to coalesce, a complex pair, or slow modes of a stiff system whose
+            # K U cancels: QZ's eigenvectors carry that round-off (Beck's column at 20
+            # elements, P = 20: 2.4e-6 off where the refined blocks are 8e-10 off)
+            return BlockFlow(modes, x0, v0)
     flow = None
     if D is None or not np.any(D):
         flow = EigenFlow.undamped(M, K, x0, v0)

@@ -137,11 +137,16 @@ def flutter_load(eigenvalues: Callable[[float], np.ndarray], step: float, P_max:
             raise ValueError(f"flutter_load: the spectrum stays real up to P = {P_max}")
         lo, hi, lo_lam = hi, min(hi + step, P_max), lam
         kind, lam = state(hi)
-    d_lo, d_hi, kept = _discriminant(lo_lam), _discriminant(lam), 0
+    centre = _pair_centre(lam)
+    d_lo, d_hi, kept = _discriminant(lo_lam, centre), _discriminant(lam, centre), 0
+    widths = [hi - lo]
     while hi - lo > tol:
-        mid = _next_load(lo, hi, d_lo, d_hi, tol)
+        # a bisection step whenever two trials have not halved the bracket (the closest pair
+        # need not be the one that coalesces): never much slower than bisection
+        stalled = len(widths) > 2 and widths[-1] > 0.5 * widths[-3]
+        mid = 0.5 * (lo + hi) if stalled else _next_load(lo, hi, d_lo, d_hi, tol)
         mid_kind, mid_lam = state(mid)
-        d_mid = _discriminant(mid_lam)
+        d_mid = _discriminant(mid_lam, centre)
         if mid_kind is None:
             lo, d_lo, kept = mid, d_mid, (kept + 1 if kept > 0 else 1)
             if kept > 1 and d_hi is not None:  # the same end kept twice (Illinois): the
@@ -151,6 +156,7 @@ def flutter_load(eigenvalues: Callable[[float], np.ndarray], step: float, P_max:
                 kept - 1 if kept < 0 else -1)
             if kept < -1 and d_lo is not None:
                 d_lo *= 0.5
+        widths.append(hi - lo)
     if kind == "flutter":
         pair = lam[np.abs(lam.imag) > COMPLEX_RTOL * np.abs(lam)]
         omega2 = float(pair[0].real)
@@ -159,18 +165,29 @@ def flutter_load(eigenvalues: Callable[[float], np.ndarray], step: float, P_max:
     return FlutterResult(kind, 0.5 * (lo + hi), (lo, hi), omega2, lam, calls)
 
 
-def _discriminant(lam: np.ndarray) -> Optional[float]:
+def _pair_centre(lam: np.ndarray) -> Optional[float]:
+    """Re lambda of the widest complex pair past a flutter load (where the two modes met)."""
+    if _state(lam) != "flutter":
+        return None
+    return float(lam.real[np.argmax(np.abs(lam.imag))])
+
+
+def _discriminant(lam: np.ndarray, centre: Optional[float]) -> Optional[float]:
     """(lambda_a - lambda_b)^2 of the two modes about to coalesce, relative to their size:
-    positive while the spectrum is real (the closest two), negative past a flutter load (the
-    widest complex pair), linear in P through the coalescence (lambda has a square-root branch
-    point there); None where an eigenvalue has crossed 0 (divergence)."""
+    positive while the spectrum is real (the two neighbours whose mean is closest to `centre`,
+    where the pair met, else the closest two), negative past a flutter load (the widest complex
+    pair), linear in P through the coalescence (lambda has a square-root branch point there);
+    None where an eigenvalue has crossed 0 (divergence)."""
     if len(lam) < 2 or _state(lam) == "divergence":
         return None
     size = float(np.abs(lam).max())
     if _state(lam) == "flutter":
         return -float((2 * np.abs(lam.imag)).max() / size) ** 2
     real = np.sort(lam.real)
-    return float(np.diff(real).min() / size) ** 2
+    gaps = np.diff(real)
+    k = (int(np.argmin(np.abs(0.5 * (real[1:] + real[:-1]) - centre))) if centre is not None
+         else int(np.argmin(gaps)))
+    return float(gaps[k] / size) ** 2
 
 
 def _next_load(lo: float, hi: float, d_lo, d_hi, tol: float) -> float:

@@ -34,3 +34,16 @@ def test_a_divergence_is_bisected():
                          tol=1e-9)
     lo, hi = found.bracket
     assert found.kind == "divergence" and lo <= 2.0 <= hi and hi - lo <= 1e-9
+
+
+@pytest.mark.parametrize("apart", [1e-6, 1e-12])
+def test_a_near_double_spectator_does_not_slow_the_search(apart):
+    """Two spectator eigenvalues almost equal (not the pair that coalesces): the discriminant
+    follows the pair that meets, found at the first complex load."""
+    def eigenvalues(P):
+        root = np.sqrt(complex(P_CR - P))
+        return np.array([50 + 3 * root, 50 - 3 * root, 7.0, 7.0 * (1 + apart), 400.0])
+
+    found = flutter_load(eigenvalues, step=0.5, P_max=10.0, tol=1e-9)
+    lo, hi = found.bracket
+    assert lo <= P_CR <= hi and hi - lo <= 1e-9 and found.evaluations <= 18

@@ -156,3 +156,25 @@ def test_the_sparse_reference_is_skipped_beyond_its_budget():
     T = 2 * SPARSE_REFERENCE_BUDGET / (short.scene.n * rate)
     assert not RunConfig.create("cauchy2d", params=SPARSE, T=T).uses_reference
     assert not RunConfig.create("cauchy2d", params=SPARSE, T=0.2, reference="none").uses_reference
+
+
+def test_the_sparse_reference_is_taken_at_the_times_asked():
+    """Times equally spaced but for 1e-10 are not a grid: each is taken where it is (a grid
+    evaluation would be off by |v'| 1e-10), and decreasing times are refused."""
+    from fem_dual.reference import SparseFlow
+
+    config = RunConfig.create("cauchy2d", params=SPARSE, T=0.3)
+    mats, scene = config.scene._csr, config.scene
+
+    def flow():
+        return SparseFlow(mats["M"], mats["K"], mats["D"], config.x0, config.v0,
+                          scene.fastest_rate())
+
+    t = np.array([0.1, 0.2000000001, 0.3])
+    x, v = flow()(t)
+    for k, s in enumerate(t):
+        xs, vs = flow()(np.array([s]))
+        assert np.abs(vs[0] - v[k]).max() <= 1e-12 * np.abs(vs).max()
+        assert np.abs(xs[0] - x[k]).max() <= 1e-12 * np.abs(xs).max()
+    with pytest.raises(ValueError, match="increase"):
+        flow()(t[::-1])
