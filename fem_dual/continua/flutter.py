@@ -8,12 +8,13 @@ growing oscillation); one may also pass through 0 (divergence, static buckling).
 load is the smallest P at which the spectrum is no longer real.
 
 :func:`flutter_load` scans P = 0, step, 2 step, ... for the first load with a complex pair among
-the lowest `count` eigenvalues, then narrows the bracket to `tol` by regula falsi (Illinois) on
-the discriminant of the two modes about to coalesce, which is linear in P there (a handful of
-eigen-solves where bisection takes about 25); it reports the bracket and Omega^2 = Re lambda of
-the pair at its upper end (the flutter frequency squared). A negative real eigenvalue met first
-is reported as divergence (bisected). Near the load the classification itself is round-off: at 200 elements
-the lowest eigenvalues read as complex or real within about 5e-8 of it, whatever the search.
+the lowest `count` eigenvalues, then narrows the bracket to `tol` by regula falsi (Illinois) on the
+discriminant of the two modes about to coalesce, which is linear in P there (a handful of
+eigen-solves where bisection takes about 25); it reports the bracket and Omega^2 = Re lambda of the
+pair at its upper end (the flutter frequency squared). A negative real eigenvalue met first is
+reported as divergence (bisected). Near the load the classification itself is round-off: at 200
+elements the lowest eigenvalues read as complex or real within about 5e-8 of it, whatever the
+search.
 
 For Beck's column with theta condensed (:class:`fem_dual.continua.condense.CondensedBeck`) the
 pencil is taken in flexibility form: with K_c(P) = K_c - P G_P and F = K_c^-1,
@@ -145,6 +146,8 @@ def flutter_load(eigenvalues: Callable[[float], np.ndarray], step: float, P_max:
         # need not be the one that coalesces): never much slower than bisection
         stalled = len(widths) > 2 and widths[-1] > 0.5 * widths[-3]
         mid = 0.5 * (lo + hi) if stalled else _next_load(lo, hi, d_lo, d_hi, tol)
+        if not lo < mid < hi:  # tol below the spacing of floats at P: as narrow as it gets
+            break
         mid_kind, mid_lam = state(mid)
         d_mid = _discriminant(mid_lam, centre)
         if mid_kind is None:

@@ -55,7 +55,7 @@ def split_fields(name: str, text, count: int) -> Tuple[str, ...]:
     return tuple(parts)
 
 
-SPARSE_REFERENCE_BUDGET = 3e7  # dofs x radians of the fastest mode: about 10 s of reference
+SPARSE_REFERENCE_BUDGET = 1.5e7  # dofs x radians of the fastest mode: about 10 s of reference
 
 
 @dataclasses.dataclass(frozen=True)
@@ -163,8 +163,9 @@ class ContinuumScene(LinearScene):
 
     def reference_affordable(self, T: float) -> bool:
         """Whether the sparse reference (fem_dual.reference.SparseFlow) over [0, T] fits its
-        budget: its work grows like n times the radians the fastest mode turns (about 3e-7 s
-        each: 1 s for 3,042 dofs turning 169 radians). The dense path's always does."""
+        budget: its work grows like n times the radians the fastest mode turns (3e-7 to 7e-7 s
+        each: 1 s for 3,042 dofs turning 169 radians, 22 s for 722 dofs turning 41,600), plus
+        a norm estimate per call (per batch of slabs). The dense path's always does."""
         if not self.sparse:
             return True
         return self.n * self._mesh_rate * T <= SPARSE_REFERENCE_BUDGET
