@@ -278,10 +278,13 @@ def decoupled(M: np.ndarray, K: np.ndarray, U: np.ndarray, slices: List[slice],
 def _one_mode_steps(k: np.ndarray, block: np.ndarray, C: np.ndarray) -> np.ndarray:
     """X (modes, size) with k_c X_c - X_c block = -C_c for one-mode blocks of stiffness k_c;
     0 where k_c I - block is singular to round-off (the block itself, or a repeated
-    frequency: no step)."""
+    frequency: no step). Round-off is 1e-12 of the two stiffnesses, or 100 eps of the largest
+    (the float64 k_c of a slow mode): two slow modes 0.5 apart beside a fast one of 1e12 are
+    apart, and their coupling (eps |K| / 0.5) is stepped away."""
     shift = k[:, None, None] * np.eye(len(block)) - block  # (modes, size, size)
-    scale = np.abs(k).max(initial=0.0) + np.abs(block).max()
-    regular = np.abs(np.linalg.det(shift)) > (1e-12 * scale) ** len(block)
+    local = np.abs(k) + np.abs(block).max()
+    floor = 100 * np.finfo(float).eps * (np.abs(k).max(initial=0.0) + np.abs(block).max())
+    regular = np.abs(np.linalg.det(shift)) > (1e-12 * local + floor) ** len(block)
     X = np.zeros_like(C)
     if regular.any():  # X_c = -C_c shift_c^-1: solve shift_c^T X_c^T = -C_c^T
         X[regular] = -np.linalg.solve(np.swapaxes(shift[regular], 1, 2),

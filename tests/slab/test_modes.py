@@ -52,6 +52,26 @@ def test_near_flutter_the_answer_its_estimate_and_its_reference_hold_to_25_digit
     assert result.error["reference_floor"] == result.estimate["data_floor_v"]
 
 
+def test_two_slow_modes_close_together_beside_a_very_fast_one():
+    """omega^2 = 1 and 1.5 beside 1e6 and 1e12 (a random orthogonal basis, M = I): QZ mixes the
+    slow pair by eps |K| / 0.5 = 1e-4. The Newton step must take them apart (a gap of 0.5 is not
+    a repeated frequency next to 1e12): the answer was 5e-6 off at --rtol 1e-6 with an estimate
+    of 1.3e-7, and its reference, sharing the modes, agreed with it."""
+    Q, _ = np.linalg.qr(np.random.default_rng(1).standard_normal((4, 4)))
+    K = Q @ np.diag([1.0, 1.5, 1e6, 1e12]) @ Q.T
+    K = 0.5 * (K + K.T)
+    x0 = Q[:, 0] + Q[:, 1]
+    config = RunConfig.create("linear", {"dofs": "4", "M": "1",
+                                         "K": ",".join(repr(float(a)) for a in K.ravel())},
+                              x0=x0.tolist(), v0=[0.0] * 4, T=20.0, rtol=1e-6)
+    result = run(config)
+    x, v = _exact(config, result.t[-1])
+    assert result.status == "ok"
+    err_x, err_v = np.abs(result.x[-1] - x).max(), np.abs(result.v[-1] - v).max()
+    assert err_x <= result.estimate["final_x"] and err_v <= result.estimate["final_v"]
+    assert err_v <= 1e-6 * result.tolerance["scale_v"]
+
+
 def test_the_newton_step_decouples_the_slow_modes():
     """At P = 20 the two slowest modes are separate blocks 22 apart; QZ's eigenvectors leave
     them coupled by 5e-7 (extended precision), which the blocks off the diagonal drop."""
