@@ -24,7 +24,7 @@ from typing import Callable, Optional, Tuple
 import numpy as np
 
 
-__all__ = ["LinearFlow", "EigenFlow", "BlockFlow", "SparseFlow", "IVPFlow", "first_order_matrix",
+__all__ = ["LinearFlow", "EigenFlow", "FirstOrderModes", "BlockFlow", "SparseFlow", "IVPFlow", "first_order_matrix",
            "linear_reference", "linear_flow", "EIGEN_MAX_CONDITION"]
 
 EIGEN_MAX_CONDITION = 1e6  # eigenvectors beyond this (near flutter, defective): expm instead
@@ -88,6 +88,35 @@ class LinearFlow:
         return z[:, :self.n], z[:, self.n:]
 
 
+class FirstOrderModes:
+    """The eigen-decomposition of the first-order system of M x'' + K x = 0 from the n x n pencil
+    K W = M W diag(mu): lambda = +-sqrt(-mu) with the vectors (w, +-lambda w), unit columns
+    (as QZ's on the 2n x 2n pencil, at a fraction of its cost)."""
+
+    def __init__(self, mu: np.ndarray, W: np.ndarray):
+        self.W, self.rate = W, np.sqrt(-mu.astype(complex))
+        V = np.block([[W, W], [W * self.rate, -W * self.rate]])
+        self.norms = np.linalg.norm(V, axis=0)
+        self.lam, self.V = np.concatenate([self.rate, -self.rate]), V / self.norms
+
+    @classmethod
+    def of(cls, mu: np.ndarray, W: np.ndarray) -> Optional["FirstOrderModes"]:
+        """None where a mu is near 0 (a rigid motion: a Jordan block of the first-order
+        system, no basis) or not finite."""
+        size = np.abs(mu)
+        if not (len(mu) and np.isfinite(mu).all() and np.isfinite(W).all()) or (
+                size.min() <= 1e3 * np.finfo(float).eps * size.max()):
+            return None
+        return cls(mu, W)
+
+    def coefficients(self, x0: np.ndarray, v0: np.ndarray) -> np.ndarray:
+        """c with V c = (x0, v0): n x n solves with W."""
+        with np.errstate(all="ignore"):
+            a, b = np.linalg.solve(self.W, np.stack([x0, v0], axis=1).astype(complex)).T
+        b = b / self.rate
+        return np.concatenate([a + b, a - b]) / 2 * self.norms
+
+
 class EigenFlow:
     """z(t) = V exp(t Lambda) V^-1 z0 with (Lambda, V) from QZ on the first-order pencil
     F z = lambda E z, E = diag(I, M), F = [[0, I], [-K, -D]]: its backward error is relative to
@@ -107,26 +136,15 @@ class EigenFlow:
     @classmethod
     def undamped(cls, M: np.ndarray, K: np.ndarray, x0: np.ndarray,
                  v0: np.ndarray) -> Optional["EigenFlow"]:
-        """From K w = mu M w: lambda = +-sqrt(-mu), vectors (w, lambda w); None where a mu is
-        near 0 (a rigid motion: a Jordan block of the first-order system) or not finite."""
+        """From QZ on the pencil (K, M) (FirstOrderModes); None where it is no basis."""
         import scipy.linalg as sla
 
         with np.errstate(all="ignore"):
-            mu, W = sla.eig(K, M)
-        size = np.abs(mu)
-        if not (np.isfinite(mu).all() and np.isfinite(W).all()) or not len(mu) or (
-                size.min() <= 1e3 * np.finfo(float).eps * size.max()):
+            modes = FirstOrderModes.of(*sla.eig(K, M))
+        if modes is None:
             return None
-        rate = np.sqrt(-mu)
         flow = cls(None, x0, v0)
-        flow.lam = np.concatenate([rate, -rate])
-        flow.V = np.block([[W, W], [W * rate, -W * rate]])
-        with np.errstate(all="ignore"):
-            a, b = np.linalg.solve(W, np.stack([x0, v0], axis=1).astype(complex)).T
-        b = b / rate
-        norms = np.linalg.norm(flow.V, axis=0)  # unit columns, as QZ's on the 2n x 2n pencil
-        flow.V = flow.V / norms
-        flow.c = np.concatenate([a + b, a - b]) / 2 * norms
+        flow.lam, flow.V, flow.c = modes.lam, modes.V, modes.coefficients(x0, v0)
         return flow
 
     @property

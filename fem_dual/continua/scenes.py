@@ -125,11 +125,6 @@ class ContinuumScene(LinearScene):
         """Energy weights on the sparse path (the space-time backend's A = Ke, B = M)."""
         return "energy" if self.sparse else super().weighting()
 
-    def acceleration(self, x0: np.ndarray, v0: np.ndarray) -> np.ndarray:
-        if not self.sparse:
-            return super().acceleration(x0, v0)
-        return self.accelerations(np.asarray(x0, float)[None], np.asarray(v0, float)[None])[0]
-
     def accelerations(self, x: np.ndarray, v: np.ndarray) -> np.ndarray:
         """-M^-1 (K x + D v) for each row of x and v; on the sparse path with one sparse LU of
         M (the rates of the dense output between vertices, fem_dual.integrate.dense)."""

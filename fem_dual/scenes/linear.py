@@ -21,7 +21,7 @@ from typing import ClassVar, Dict, Optional, Tuple
 import numpy as np
 
 from fem_dual.errors import InputError
-from fem_dual.reference import first_order_matrix
+from fem_dual.reference import FirstOrderModes, first_order_matrix
 from fem_dual.scenes.base import (LazyForms, Scene, choice_field, is_spd, matrix_field, require_spd,
                                   show)
 
@@ -137,7 +137,7 @@ class LinearScene(Scene):
 
     def acceleration(self, x0: np.ndarray, v0: np.ndarray) -> np.ndarray:
         """v' at the state (x0, v0): -M^-1 (K x0 + D v0)."""
-        return (self.first_order_matrix() @ np.concatenate([x0, v0]))[self.n:]
+        return self.accelerations(np.asarray(x0, float)[None], np.asarray(v0, float)[None])[0]
 
     def accelerations(self, x: np.ndarray, v: np.ndarray) -> np.ndarray:
         """-M^-1 (K x + D v) for each row of x and v (rows, n)."""
@@ -159,19 +159,16 @@ class LinearScene(Scene):
         them). Undamped: from the n x n pencil K w = mu M w, lambda = +-sqrt(-mu) with the
         vectors (w, lambda w) from the real modes the modal coordinates use (the rates of a
         450-dof square in 2.3 s, where the 2n x 2n eig and its least squares take 13 s)."""
-        pencil = self._pencil_modes
-        if pencil is None:
+        modes = self._pencil_modes
+        if modes is None:
             return np.linalg.eig(self.first_order_matrix())
-        lam, W = pencil
-        V = np.block([[W, W], [W * lam, -W * lam]])
-        return np.concatenate([lam, -lam]), V / np.linalg.norm(V, axis=0)
+        return modes.lam, modes.V
 
     @functools.cached_property
-    def _pencil_modes(self) -> Optional[Tuple[np.ndarray, np.ndarray]]:
-        """(lambda, W) with lambda = sqrt(-mu) for K W = M W diag(mu) of an undamped scene whose
-        first-order eigenvectors (w, +-lambda w) are a basis: no mu near zero (a rigid motion is
-        a Jordan block of the first-order system) and W well conditioned; else None. From the
-        pencil's real modes (fem_dual.modes, shared with the modal coordinates): each block's
+    def _pencil_modes(self) -> Optional[FirstOrderModes]:
+        """The first-order modes of an undamped scene from K W = M W diag(mu) where they are a
+        basis (FirstOrderModes.of) and W is well conditioned; else None. W from the pencil's
+        real modes (fem_dual.modes, shared with the modal coordinates): each block's
         eigenvectors in its columns."""
         if np.any(self.damping_matrix()):
             return None
@@ -189,23 +186,15 @@ class LinearScene(Scene):
         for b in block_slices(Kr):
             mu[b], Y = np.linalg.eig(Kr[b, b])
             W[:, b] = U[:, b] @ Y
-        size = np.abs(mu)
-        near_zero = size.min() <= 1e3 * np.finfo(float).eps * size.max()
-        if near_zero or not np.linalg.cond(W) <= 1e10:
-            return None
-        return np.sqrt(-mu), W
+        modes = FirstOrderModes.of(mu, W)
+        return modes if modes is not None and np.linalg.cond(W) <= 1e10 else None
 
     def modal_coefficients(self, x0: np.ndarray, v0: np.ndarray) -> np.ndarray:
         """c with V c = (x0, v0) for the eigenvectors V of `spectrum`."""
-        lam, V = self.spectrum
-        pencil = self._pencil_modes
-        if pencil is None:
-            return np.linalg.lstsq(V, np.concatenate([x0, v0]), rcond=None)[0]
-        rates, W = pencil
-        a, b = np.linalg.solve(W, np.stack([x0, v0], axis=1).astype(complex)).T
-        b = b / rates
-        scale = np.linalg.norm(np.concatenate([W, W * rates]), axis=0)  # V's column norms
-        return np.concatenate([(a + b) * scale, (a - b) * scale]) / 2
+        modes = self._pencil_modes
+        if modes is None:
+            return np.linalg.lstsq(self.spectrum[1], np.concatenate([x0, v0]), rcond=None)[0]
+        return modes.coefficients(x0, v0)
 
     def fastest_rate(self, x0=None, v0=None, relative: float = 1e-6,
                      scales: Optional[Tuple[float, float]] = None) -> float:
