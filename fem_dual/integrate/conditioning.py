@@ -67,6 +67,16 @@ def _unit_round_off(K: np.ndarray, U: np.ndarray, slices) -> np.ndarray:
     return unit
 
 
+def _sparse(matrix: np.ndarray):
+    """The matrix as CSR where most of it is zero (a continuum's M and K: the products of
+    data_floor then cost n^2 per nonzero column, not n^3), else itself."""
+    if np.count_nonzero(matrix) < 0.1 * matrix.size:
+        from scipy import sparse  # (not at import: `fem-dual --help` loads no scipy)
+
+        return sparse.csr_matrix(matrix)
+    return matrix
+
+
 def data_floor(scene, x0: np.ndarray, v0: np.ndarray, T: float) -> Optional[DataFloor]:
     """The DataFloor of the scene's motion from (x0, v0) over [0, T]; None where the scene is
     not linear and undamped with dense modes (fem_dual.slab.modal)."""
@@ -89,9 +99,12 @@ def data_floor(scene, x0: np.ndarray, v0: np.ndarray, T: float) -> Optional[Data
     rng = np.random.default_rng(0)
     scaled = U * _unit_round_off(K, U, slices)  # each column with the unit of its block's K Ub
     worst = np.zeros((TIMES, 2))
+    to_modal = np.linalg.solve(U, np.linalg.inv(M))  # U^-1 M^-1, once for every sample
+    scaled_kr = scaled @ Kr
     for _ in range(SAMPLES):
-        E, F = K * rng.standard_normal(K.shape), M * rng.standard_normal(M.shape)
-        change = np.linalg.solve(U, np.linalg.solve(M, E @ scaled - F @ (scaled @ Kr)))
+        E = _sparse(K * rng.standard_normal(K.shape))
+        F = _sparse(M * rng.standard_normal(M.shape))
+        change = to_modal @ (E @ scaled - F @ scaled_kr)
         change += EPS * Kr * rng.standard_normal(Kr.shape)  # Kr's own rounding
         rp, rvp = block_motion(Kr + np.where(inside, change, 0.0), slices, r0, rv0, t)
         dx = np.abs((rp - r) @ U.T).max(axis=1, initial=0.0)

@@ -28,6 +28,7 @@ from fem_dual.scenes.base import (LazyForms, Scene, choice_field, is_spd, matrix
 __all__ = ["LinearScene", "GeneralLinear", "STIFF_SPREAD"]
 
 STIFF_SPREAD = 5.0  # omega_max / omega_min beyond which auto weights are "energy"
+SPREAD_FROM_MODES = 64  # dofs from which frequency_spread reads the pencil's modes
 
 
 def _same(a, b) -> bool:
@@ -57,9 +58,15 @@ class LinearScene(Scene):
         return np.zeros((self.n, self.n))
 
     def frequency_spread(self) -> float:
-        """omega_max / omega_min over the eigenvalues of M^-1 K (inf if one is zero)."""
-        lam = np.abs(np.linalg.eigvals(np.linalg.solve(self.mass_matrix(),
-                                                       self.stiffness_matrix())))
+        """omega_max / omega_min over the eigenvalues of M^-1 K (inf if one is zero); of a
+        large undamped scene from the pencil's modes, which its spectrum computes anyway (a
+        small one's eigenvalues cost less than importing scipy before its input is checked)."""
+        modes = self._pencil_modes if self.n >= SPREAD_FROM_MODES else None
+        if modes is not None:
+            lam = np.abs(modes.lam) ** 2  # lambda = +-sqrt(-mu): |lambda|^2 = |mu|
+        else:
+            lam = np.abs(np.linalg.eigvals(np.linalg.solve(self.mass_matrix(),
+                                                           self.stiffness_matrix())))
         return float(np.sqrt(lam.max() / lam.min())) if lam.min() > 0 else float("inf")
 
     def energy(self, x, v) -> float:
@@ -149,6 +156,13 @@ class LinearScene(Scene):
         return np.linalg.inv(self.mass_matrix())
 
     def first_order_matrix(self) -> np.ndarray:
+        """A of z' = A z (a copy: the caller may change it)."""
+        return self._first_order.copy()
+
+    @functools.cached_property
+    def _first_order(self) -> np.ndarray:
+        # once per scene: the validation, the slab-map checks and the base state each need it
+        # (two n x n solves: 25 ms for 450 dofs)
         return first_order_matrix(self.mass_matrix(), self.stiffness_matrix(),
                                   self.damping_matrix())
 

@@ -313,18 +313,26 @@ class _FastDiagonalisation:
 
     def __init__(self, problem: KroneckerProblem):
         self.p = problem
+        self._w2: Optional[np.ndarray] = None
+
+    def _modes(self) -> np.ndarray:
+        """w^2 of the pencil (Ke, M), and the four products of apply, with this rank's columns
+        cut once (scalings in modal coordinates, where Phi is diagonal): once per problem, for
+        every slab length."""
+        if self._w2 is None:
+            p, c = self.p, self.p.c
+            w2, Phi = sla.eigh(c["Ke"], c["M"])
+            Phi_inv = np.linalg.inv(Phi)
+            self.in_xi = _RightFactor(Phi_inv.T, p.mine)
+            self.in_eta = _RightFactor(Phi, p.mine)
+            self.out_xi = _RightFactor(Phi_inv, p.mine)
+            self.out_eta = _RightFactor(Phi.T, p.mine)
+            self._w2 = np.maximum(np.abs(w2), 1e-12 * np.abs(w2).max())  # near flutter: SPD
+        return self._w2
 
     def setup_dt(self, dt: float) -> None:
-        p, c = self.p, self.p.c
-        w2, Phi = sla.eigh(c["Ke"], c["M"])
-        w2 = np.maximum(np.abs(w2), 1e-12 * np.abs(w2).max())  # near flutter: stay SPD
-        Phi_inv = np.linalg.inv(Phi)
-        # the four products of apply, with this rank's columns cut once (scalings in modal
-        # coordinates, where Phi is diagonal)
-        self.in_xi = _RightFactor(Phi_inv.T, p.mine)
-        self.in_eta = _RightFactor(Phi, p.mine)
-        self.out_xi = _RightFactor(Phi_inv, p.mine)
-        self.out_eta = _RightFactor(Phi.T, p.mine)
+        p = self.p
+        w2 = self._modes()
         T = p.time_free
         S, Mm = T["S"].toarray(), T["Mm"].toarray()
         skew = T["G"].toarray() - T["C"].toarray()

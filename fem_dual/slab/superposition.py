@@ -42,6 +42,25 @@ def stable_or_raise(comm, scene, end_states: Optional[np.ndarray], dt: float, T:
         raise SolveError(message)
 
 
+def _block_eigenvalues(A: np.ndarray, end_states: np.ndarray,
+                       blocks: np.ndarray) -> Tuple[np.ndarray, float]:
+    """(eigenvalues of A, spectral radius of the map) over the blocks that `blocks` labels:
+    the blocks of one size in one stacked eigvals (450 modes of a square: 10 ms, not 0.5 s)."""
+    n = len(blocks)
+    labels, sizes = np.unique(blocks, return_counts=True)
+    lam, rho = [], 0.0
+    for size in np.unique(sizes):
+        both = []
+        for label in labels[sizes == size]:
+            where = np.flatnonzero(blocks == label)
+            both.append(np.concatenate([where, where + n]))
+        both = np.array(both)  # (blocks, 2 size)
+        cut = (both[:, :, None], both[:, None, :])
+        rho = max(rho, float(np.abs(np.linalg.eigvals(end_states[cut])).max()))
+        lam.append(np.linalg.eigvals(A[cut]).ravel())
+    return np.concatenate(lam), rho
+
+
 def check_slab_map(scene, end_states: np.ndarray, dt: float, slabs: float,
                    blocks: Optional[np.ndarray] = None) -> None:
     """SolveError when the slab map Phi (columns: end states of the unit start states) grows
@@ -58,15 +77,7 @@ def check_slab_map(scene, end_states: np.ndarray, dt: float, slabs: float,
         lam = scene.spectrum[0]
         rho = float(np.abs(np.linalg.eigvals(end_states)).max())
     else:
-        n, A = len(blocks), scene.first_order_matrix()
-        lam, rho = [], 0.0
-        for label in np.unique(blocks):
-            both = np.concatenate([np.flatnonzero(blocks == label)] * 2)
-            both[len(both) // 2:] += n
-            cut = np.ix_(both, both)
-            rho = max(rho, float(np.abs(np.linalg.eigvals(end_states[cut])).max()))
-            lam.append(np.linalg.eigvals(A[cut]))
-        lam = np.concatenate(lam)
+        lam, rho = _block_eigenvalues(scene.first_order_matrix(), end_states, blocks)
     if float(np.abs(lam).max()) * dt <= 1.0:
         return
     sigma = float(lam.real.max())
