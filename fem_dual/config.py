@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import functools
 import math
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, Mapping, Optional, Sequence, Tuple, Union
@@ -141,6 +142,7 @@ class RunConfig:
     reference: str = "auto"  # auto: the scene's reference; none: skip it (error is null)
     t_eval: Optional[np.ndarray] = None  # extra output times (dense output, fem_dual.integrate.dense)
     max_slabs: int = 5000  # --rtol: a run predicted to take more slabs stops (exit 3)
+    setup_s: float = field(default=0.0, compare=False)  # what `create` took (timings.setup_s)
 
     @functools.cached_property
     def base_state(self) -> str:  # cached: stiff_at_start differentiates the force
@@ -271,6 +273,7 @@ class RunConfig:
         so that the estimated error stays within atol + rtol * scale (see
         fem_dual.integrate.estimate); `slabs` must then be left at 1. `cells` and `degree`
         left out are the defaults of the run's kind (`default_discretisation`)."""
+        tic = time.perf_counter()
         scene = scene_of(scene, params)
         T_value = _horizon(scene, T)
         rtol_value = None if rtol is None else tolerance_value("rtol", rtol)
@@ -293,6 +296,7 @@ class RunConfig:
                      reference, times, budget)
         if check_petsc:
             config.check_petsc()
+        object.__setattr__(config, "setup_s", time.perf_counter() - tic)  # (frozen)
         return config
 
     def identity(self) -> Dict[str, Any]:

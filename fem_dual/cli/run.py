@@ -115,8 +115,9 @@ def summary(result: RunResult) -> str:
                       f"drift per slab={h['drift']:.3e}"
                       if result.solver.get("base") in ("start", "zero")
                       else "(not conserved: the base state moves within a slab)")]
-    lines.append(f"  time    total {tm['total_s']:.3f} s (compile {tm['compile_s']:.3f} s, "
-                 f"solve {tm['solve_s']:.3f} s, {result.solver['slab_solves']} slab solves)")
+    lines.append(f"  time    total {tm['total_s']:.3f} s (set-up {tm.get('setup_s', 0.0):.3f} s, "
+                 f"compile {tm['compile_s']:.3f} s, solve {tm['solve_s']:.3f} s, "
+                 f"{result.solver['slab_solves']} slab solves)")
     if result.output_files:
         lines.append("  output  " + ", ".join(result.output_files))
     return "\n".join(lines)

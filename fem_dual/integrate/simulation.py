@@ -389,12 +389,14 @@ class Simulation:
             return self.superposition.basis_solves + self.direct_solves
         return self.backend.solves - self.tangent_solves
 
-    def run(self, config: RunConfig, progress: bool = False, resume: bool = False):
+    def run(self, config: RunConfig, progress: bool = False, resume: bool = False,
+            setup_s: float = 0.0):
         """Solve the dual problem slab by slab, recover the primal motion, estimate its error,
-        compare with the reference (fem_dual.integrate.loop.run); returns the RunResult."""
+        compare with the reference (fem_dual.integrate.loop.run); returns the RunResult.
+        `setup_s`: the caller's set-up seconds before it, reported in timings (and total_s)."""
         if not self.matches(config):
             raise ValueError("the configuration does not match the compiled simulation")
         self.begin(config)
         self.companion.begin(config)
         with quiet_numpy():  # (overflows are judged: the run says what failed, once)
-            return run_slabs(self, config, progress, resume)
+            return run_slabs(self, config, progress, resume, setup_s)

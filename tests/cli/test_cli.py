@@ -102,7 +102,11 @@ def test_json_contract(capsys):
     assert set(data["error"]) >= {"x_max", "v_max", "final"}
     assert data["error"]["x_max"] < 1e-4
     assert set(data["hamiltonian"]) >= {"min", "max", "drift"}
-    assert set(data["timings"]) >= {"total_s", "compile_s", "solve_s"}
+    tm = data["timings"]
+    assert set(tm) >= {"total_s", "compile_s", "setup_s", "solve_s"}
+    # the total holds the set-up (building and checking the inputs), the compile and the slabs
+    assert tm["setup_s"] > 0 and tm["solve_s"] > 0
+    assert tm["total_s"] >= tm["setup_s"] + tm["compile_s"] + tm["solve_s"] + tm["estimate_s"]
 
 
 @pytest.mark.mpi
