@@ -1,7 +1,7 @@
 """fem-dual against Newmark's average acceleration on a continuum, at matched error.
 
     .venv/bin/python benchmarks/continuum_newmark.py [--scene cauchy2d] [--param elements=16]
-        [--T 1] [--rtol 1e-2 1e-4 1e-6] [--target 1e-4 1e-6 1e-8] [--scheme newmark|alpha]
+        [--T 1] [--degree P] [--rtol 1e-2 1e-4 1e-6] [--target 1e-4 1e-6 1e-8] [--scheme newmark|alpha]
 
 For each rtol: `fem-dual run SCENE --rtol R --out DIR --json` (its time: the whole run less its
 reference and output; the set-up included: loading DOLFINx and PETSc, assembling M and K, the
@@ -31,9 +31,11 @@ nm = sys.modules[_spec.name] = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(nm)
 
 
-def fem_dual_row(scene, params, T, rtol, out: Path):
+def fem_dual_row(scene, params, T, rtol, out: Path, degree=None):
     cmd = [str(Path(sys.executable).parent / "fem-dual"), "run", scene, "--T", str(T),
            "--rtol", str(rtol), "--out", str(out), "--json"]
+    if degree is not None:
+        cmd += ["--degree", str(degree)]
     for p in params:
         cmd += ["--param", p]
     data = json.loads(subprocess.run(cmd, capture_output=True, text=True, check=True).stdout)
@@ -56,6 +58,7 @@ def main(argv=None) -> int:
     ap.add_argument("--scene", default="cauchy2d")
     ap.add_argument("--param", action="append", default=[])
     ap.add_argument("--T", type=float, default=1.0)
+    ap.add_argument("--degree", type=int, help="fem-dual's degree in time (default: --rtol's)")
     ap.add_argument("--rtol", type=float, nargs="+", default=[1e-2, 1e-4, 1e-6])
     ap.add_argument("--target", type=float, nargs="+", default=[1e-4, 1e-6, 1e-8])
     ap.add_argument("--halvings", type=int, default=17, help="Newmark's step halvings from 16 "
@@ -69,7 +72,8 @@ def main(argv=None) -> int:
     rows = []
     for rtol in args.rtol:
         with tempfile.TemporaryDirectory() as tmp:
-            data, wall = fem_dual_row(args.scene, args.param, args.T, rtol, Path(tmp))
+            data, wall = fem_dual_row(args.scene, args.param, args.T, rtol, Path(tmp),
+                                      args.degree)
             M, D, K, u0, v0 = nm.load_npz(str(Path(tmp) / f"{args.scene}_system.npz"))
         ref, _ = nm.expm_reference(M, D, K, u0, v0, [args.T])
         error = float(np.linalg.norm(np.array(data["final"]["x"]) - ref[0])

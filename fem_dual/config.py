@@ -142,7 +142,8 @@ class RunConfig:
     reference: str = "auto"  # auto: the scene's reference; none: skip it (error is null)
     t_eval: Optional[np.ndarray] = None  # extra output times (dense output, fem_dual.integrate.dense)
     max_slabs: int = 5000  # --rtol: a run predicted to take more slabs stops (exit 3)
-    setup_s: float = field(default=0.0, compare=False)  # what `create` took (timings.setup_s)
+    # what `create` took (timings.setup_s; a copy by dataclasses.replace keeps it)
+    setup_s: float = field(default=0.0, compare=False)
 
     @functools.cached_property
     def base_state(self) -> str:  # cached: stiff_at_start differentiates the force

@@ -314,13 +314,16 @@ class _FastDiagonalisation:
     def __init__(self, problem: KroneckerProblem):
         self.p = problem
         self._w2: Optional[np.ndarray] = None
+        self._constants: Optional[dict] = None  # the scene products _w2 belongs to
 
     def _modes(self) -> np.ndarray:
         """w^2 of the pencil (Ke, M), and the four products of apply, with this rank's columns
-        cut once (scalings in modal coordinates, where Phi is diagonal): once per problem, for
-        every slab length."""
-        if self._w2 is None:
+        cut once (scalings in modal coordinates, where Phi is diagonal): once per scene (a
+        simulation run again with other parameters gets new products), for every slab
+        length."""
+        if self._w2 is None or self._constants is not self.p.c:
             p, c = self.p, self.p.c
+            self._constants = c
             w2, Phi = sla.eigh(c["Ke"], c["M"])
             Phi_inv = np.linalg.inv(Phi)
             self.in_xi = _RightFactor(Phi_inv.T, p.mine)

@@ -47,6 +47,26 @@ def test_loaded_damped_systems_equal_the_forms_path(scene, params):
 
 
 @pytest.mark.mpi
+def test_a_simulation_run_again_with_other_parameters_preconditions_the_new_scene():
+    """The preconditioner's pencil is the scene's: a simulation run first with c = 1 and then
+    with c = 1e4 solves the second like a fresh one (same CG counts, same answer)."""
+    from fem_dual.integrate.simulation import Simulation
+
+    cfg = dict(coordinates="physical", assembly="kronecker", slabs=2, T=0.5, cells=8, degree=3)
+    first = RunConfig.create("column", {"links": "6", "c": "1"}, **cfg)
+    second = RunConfig.create("column", {"links": "6", "c": "1e4"}, **cfg)
+    sim = Simulation.for_config(first)
+    try:
+        sim.run(first)
+        again = sim.run(second)
+    finally:
+        sim.close()
+    fresh = run(second)
+    assert again.solver["ksp_iterations"] == fresh.solver["ksp_iterations"]
+    assert _rel(again.x, fresh.x) < 1e-12 and _rel(again.v, fresh.v) < 1e-12
+
+
+@pytest.mark.mpi
 def test_superposition_in_kronecker_form_equals_a_solve_per_slab():
     params = {"links": "6", "P": "0.5"}
     cfg = dict(T=8.0, slabs=16, cells=8, degree=4, assembly="kronecker")
