@@ -24,8 +24,8 @@ from typing import Callable, Optional, Tuple
 import numpy as np
 
 
-__all__ = ["LinearFlow", "EigenFlow", "FirstOrderModes", "BlockFlow", "SparseFlow", "IVPFlow", "first_order_matrix",
-           "linear_reference", "linear_flow", "EIGEN_MAX_CONDITION"]
+__all__ = ["LinearFlow", "EigenFlow", "FirstOrderModes", "BlockFlow", "SparseFlow", "IVPFlow",
+           "first_order_matrix", "linear_reference", "linear_flow", "EIGEN_MAX_CONDITION"]
 
 EIGEN_MAX_CONDITION = 1e6  # eigenvectors beyond this (near flutter, defective): expm instead
 
@@ -120,18 +120,22 @@ class FirstOrderModes:
 class EigenFlow:
     """z(t) = V exp(t Lambda) V^-1 z0 with (Lambda, V) from QZ on the first-order pencil
     F z = lambda E z, E = diag(I, M), F = [[0, I], [-K, -D]]: its backward error is relative to
-    |K|, |M| and |D|, not to |M^-1 K| as the float64 expm's is. `undamped` takes them from QZ
-    on the n x n pencil (K, M) instead (a 450-dof square: 1 s where the 2n x 2n pencil takes
-    15 s)."""
+    |K|, |M| and |D|, not to |M^-1 K| as the float64 expm's is (`of_pencil`). `undamped` takes
+    them from QZ on the n x n pencil (K, M) instead (a 450-dof square: 1 s where the 2n x 2n
+    pencil takes 15 s). c: the start state's coefficients, V c = z0."""
 
-    def __init__(self, pencil: Optional[Tuple[np.ndarray, np.ndarray]], x0: np.ndarray,
-                 v0: np.ndarray):
-        self.n = len(x0)
-        if pencil is not None:
-            import scipy.linalg as sla
+    def __init__(self, lam: np.ndarray, V: np.ndarray, c: np.ndarray):
+        self.n = len(c) // 2
+        self.lam, self.V, self.c = lam, V, c
 
-            self.lam, self.V = sla.eig(*pencil)
-            self.c = np.linalg.solve(self.V, np.concatenate([x0, v0]))
+    @classmethod
+    def of_pencil(cls, pencil: Tuple[np.ndarray, np.ndarray], x0: np.ndarray,
+                  v0: np.ndarray) -> "EigenFlow":
+        """From QZ on the first-order pencil (F, E) (first_order_pencil)."""
+        import scipy.linalg as sla
+
+        lam, V = sla.eig(*pencil)
+        return cls(lam, V, np.linalg.solve(V, np.concatenate([x0, v0])))
 
     @classmethod
     def undamped(cls, M: np.ndarray, K: np.ndarray, x0: np.ndarray,
@@ -143,9 +147,7 @@ class EigenFlow:
             modes = FirstOrderModes.of(*sla.eig(K, M))
         if modes is None:
             return None
-        flow = cls(None, x0, v0)
-        flow.lam, flow.V, flow.c = modes.lam, modes.V, modes.coefficients(x0, v0)
-        return flow
+        return cls(modes.lam, modes.V, modes.coefficients(x0, v0))
 
     @property
     def condition(self) -> float:
@@ -232,11 +234,11 @@ class SparseFlow:
         from scipy.sparse.linalg import expm_multiply
 
         t = np.asarray(t, dtype=float)
-        if np.any(np.diff(t) < 0):
+        gaps = np.diff(t)
+        if np.any(gaps < 0):
             raise ValueError("SparseFlow: times must increase within a call")
         a, z = self._at if t[0] >= self._at[0] else (0.0, self.z0)
         z = self._step(z, t[0] - a)
-        gaps = np.diff(t)
         grid = np.linspace(t[0], t[-1], len(t))
         # equally spaced to a few units in the last place (a slab's vertices): one call
         if len(t) > 2 and np.abs(t - grid).max() <= 4 * np.finfo(float).eps * np.abs(t).max():
@@ -267,14 +269,14 @@ def linear_flow(M: np.ndarray, K: np.ndarray, D: Optional[np.ndarray], x0: np.nd
     Rayleigh quotients, within the data floor); else EigenFlow when its eigenvectors are well
     conditioned (EIGEN_MAX_CONDITION); else BlockFlow where the system is undamped; else
     LinearFlow (expm)."""
-    from fem_dual.modes import block_slices, cancelling
+    from fem_dual.modes import block_slices, refined_blocks
 
     x0, v0 = np.asarray(x0, float), np.asarray(v0, float)
     modes = None if (D is not None and np.any(D)) else _block_modes(M, K)
     if modes is not None:
         U, Kr = modes
         slices = block_slices(Kr)
-        if len(slices) < len(M) or cancelling(K, U, slices, K @ U).any():
+        if len(slices) < len(M) or refined_blocks(M, K).any():
             # modes about to coalesce, a complex pair, or slow modes of a stiff system whose
             # K U cancels: QZ's eigenvectors carry that round-off (Beck's column at 20
             # elements, P = 20: 2.4e-6 off where the refined blocks are 8e-10 off)
@@ -283,7 +285,7 @@ def linear_flow(M: np.ndarray, K: np.ndarray, D: Optional[np.ndarray], x0: np.nd
     if D is None or not np.any(D):
         flow = EigenFlow.undamped(M, K, x0, v0)
     if flow is None:
-        flow = EigenFlow(first_order_pencil(M, K, D), x0, v0)
+        flow = EigenFlow.of_pencil(first_order_pencil(M, K, D), x0, v0)
     if np.isfinite(flow.lam).all() and flow.condition <= EIGEN_MAX_CONDITION:
         return flow
     if modes is not None:
@@ -294,17 +296,12 @@ def linear_flow(M: np.ndarray, K: np.ndarray, D: Optional[np.ndarray], x0: np.nd
 def _block_modes(M: np.ndarray, K: np.ndarray) -> Optional[Tuple[np.ndarray, np.ndarray]]:
     """(U, Kr) of fem_dual.modes.real_modes, or None where they are incomplete or U is no
     better conditioned than EIGEN_MAX_CONDITION."""
-    from fem_dual.modes import real_modes
+    from fem_dual.modes import finite_real_modes
 
-    try:
-        with np.errstate(all="ignore"):
-            U, Kr = real_modes(M, K)[:2]
-    except (np.linalg.LinAlgError, ValueError):  # overflow to inf or NaN in the pencil
+    modes = finite_real_modes(M, K)
+    if modes is None or not np.linalg.cond(modes[0]) <= EIGEN_MAX_CONDITION:
         return None
-    if U.shape != M.shape or not (np.isfinite(U).all() and np.isfinite(Kr).all()) or not (
-            np.linalg.cond(U) <= EIGEN_MAX_CONDITION):
-        return None
-    return U, Kr
+    return modes[0], modes[1]
 
 
 KINK_STEP = 1e-9  # past a kink, DOP853 goes on without events for this fraction of the horizon

@@ -27,7 +27,7 @@ import numpy as np
 
 from fem_dual.config import MODAL_MAX_DOFS
 from fem_dual.integrate.estimate import ESTIMATE_SAFETY
-from fem_dual.modes import block_motion, block_slices, cancelling
+from fem_dual.modes import block_motion, block_slices, refined_blocks
 from fem_dual.slab.modal import modal_decomposition
 
 __all__ = ["DataFloor", "data_floor", "SAMPLES", "TIMES"]
@@ -57,11 +57,11 @@ class DataFloor:
         return self.floor[-1]
 
 
-def _unit_round_off(K: np.ndarray, U: np.ndarray, slices) -> np.ndarray:
+def _unit_round_off(M: np.ndarray, K: np.ndarray, slices) -> np.ndarray:
     """(n,): the unit round-off of each column's K Ub: extended precision where real_modes
-    formed its residual there (`cancelling`), float64 elsewhere."""
-    unit = np.full(len(U), EPS)
-    for here, refined in zip(slices, cancelling(K, U, slices, K @ U)):
+    formed its residual there (`refined_blocks`), float64 elsewhere."""
+    unit = np.full(len(M), EPS)
+    for here, refined in zip(slices, refined_blocks(M, K)):
         if refined:
             unit[here] = EXTENDED_EPS
     return unit
@@ -97,7 +97,7 @@ def data_floor(scene, x0: np.ndarray, v0: np.ndarray, T: float) -> Optional[Data
     for s in slices:
         inside[s, s] = True
     rng = np.random.default_rng(0)
-    scaled = U * _unit_round_off(K, U, slices)  # each column with the unit of its block's K Ub
+    scaled = U * _unit_round_off(M, K, slices)  # each column with the unit of its block's K Ub
     worst = np.zeros((TIMES, 2))
     to_modal = np.linalg.solve(U, np.linalg.inv(M))  # U^-1 M^-1, once for every sample
     scaled_kr = scaled @ Kr

@@ -186,16 +186,13 @@ class LinearScene(Scene):
         eigenvectors in its columns."""
         if np.any(self.damping_matrix()):
             return None
-        from fem_dual.modes import block_slices, real_modes
+        from fem_dual.modes import block_slices, finite_real_modes
 
         M = self.mass_matrix()
-        try:
-            with np.errstate(all="ignore"):
-                U, Kr = real_modes(M, self.stiffness_matrix())[:2]
-        except (np.linalg.LinAlgError, ValueError):  # overflow to inf or NaN in the pencil
+        modes = finite_real_modes(M, self.stiffness_matrix())
+        if modes is None:
             return None
-        if U.shape != M.shape or not (np.isfinite(U).all() and np.isfinite(Kr).all()):
-            return None
+        U, Kr = modes[:2]
         mu, W = np.zeros(len(M), complex), np.zeros(M.shape, complex)
         for b in block_slices(Kr):
             mu[b], Y = np.linalg.eig(Kr[b, b])

@@ -22,7 +22,7 @@ from typing import ClassVar, Optional, Tuple
 import numpy as np
 
 from fem_dual.errors import InputError
-from fem_dual.modes import real_modes
+from fem_dual.modes import finite_real_modes
 from fem_dual.slab.values import VertexValues, times_last
 from fem_dual.scenes.base import is_spd
 from fem_dual.scenes.linear import LinearScene
@@ -69,17 +69,10 @@ def _decomposition(scene: LinearScene) -> tuple:
     links)."""
     if scene.A is not None or scene.B is not None:
         return None, "H's weights A, B were given in physical coordinates"
-    M, K = scene.mass_matrix(), scene.stiffness_matrix()
-    if not (np.isfinite(M).all() and np.isfinite(K).all()):
-        return None, "the modes of (K, M) cannot be computed"
-    try:
-        with np.errstate(all="ignore"):
-            modes = real_modes(M, K)
-    except (np.linalg.LinAlgError, ValueError):  # overflow to inf or NaN in the pencil
+    modes = finite_real_modes(scene.mass_matrix(), scene.stiffness_matrix())
+    if modes is None:
         return None, "the modes of (K, M) cannot be computed"
     U, Ar = modes[0], modes[2]
-    if U.shape != (scene.n, scene.n) or not all(np.isfinite(a).all() for a in modes):
-        return None, "the modes of (K, M) cannot be computed"
     cond = np.linalg.cond(U)
     if not cond < MAX_CONDITION:
         return None, (f"the modes of (K, M) are nearly dependent (condition number "

@@ -97,7 +97,7 @@ def test_the_undamped_reference_from_the_pencil_is_exact_to_round_off(name):
     n = len(M)
     x0, v0 = np.linspace(-1, 1, n), np.cos(np.arange(n))
     fast = EigenFlow.undamped(M, K, x0, v0)
-    full = EigenFlow(first_order_pencil(M, K), x0, v0)
+    full = EigenFlow.of_pencil(first_order_pencil(M, K), x0, v0)
     t = np.array([1.7])
     # (the 2n x 2n one is the reference where it is exact to round-off: not on the stiff one)
     exact = _exact(M, K, x0, v0, t, digits=30) if name == "stiff" else np.hstack(full(t))
