@@ -32,6 +32,7 @@ system-packages:
 $(VENV)/.installed: pyproject.toml | system-packages
 	$(PY) -m venv --system-site-packages $(VENV)
 	$(VPY) -m pip install --quiet --no-build-isolation --no-index -e .
+	$(VPY) -m compileall -q fem_dual > /dev/null  # (bytecode, where the environment writes none)
 	touch $@
 
 # The compiled loops, built into the package with the compiler the FFCx JIT uses (without one,

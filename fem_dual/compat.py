@@ -242,8 +242,6 @@ def _memo_load(key: str, cache_dir) -> Optional[tuple]:
     import json
     from pathlib import Path
 
-    from ffcx.codegeneration.jit import _load_objects
-
     try:
         entry = json.loads(_memo_path(key, cache_dir).read_text())
         if entry.get("format") != _MEMO_FORMAT:
@@ -251,10 +249,28 @@ def _memo_load(key: str, cache_dir) -> Optional[tuple]:
         ready = Path(cache_dir) / f"{entry['module']}.c.cached"
         if not ready.exists():
             return None
-        (ufcx,), module = _load_objects(cache_dir, entry["module"], [entry["kernel"]])
+        module = _load_module(Path(cache_dir), entry["module"])
+        ufcx = getattr(module.lib, entry["kernel"])
         return ufcx, module, list(entry["coefficients"]), list(entry["constants"])
     except (OSError, ValueError, KeyError, TypeError, AttributeError, ImportError):
         return None
+
+
+def _load_module(cache_dir: "os.PathLike", name: str):
+    """The compiled module `name` of FFCx's cache, loaded from its file. (FFCx's own loader
+    lists the whole cache directory for every module, a few ms each in a cache of thousands.)"""
+    import importlib.machinery
+    import importlib.util
+
+    for suffix in importlib.machinery.EXTENSION_SUFFIXES:
+        path = cache_dir / f"{name}{suffix}"
+        if path.exists():
+            loader = importlib.machinery.ExtensionFileLoader(name, str(path))
+            spec = importlib.util.spec_from_file_location(name, str(path), loader=loader)
+            module = importlib.util.module_from_spec(spec)
+            loader.exec_module(module)
+            return module
+    raise ImportError(f"no compiled module {name} in {cache_dir}")
 
 
 def _memo_save(key: str, cache_dir, entry: dict) -> None:

@@ -39,6 +39,8 @@ def _main(argv: Optional[Sequence[str]], comm: "Optional[MPI.Comm]") -> int:
     if argv is None and hasattr(signal, "SIGPIPE"):  # `fem-dual ... | head`: end quietly, as
         signal.signal(signal.SIGPIPE, signal.SIG_DFL)  # Unix tools do (not PETSc's handler)
     process = argv is None  # the command itself, not a call from Python
+    if process:
+        _singleton_mpi_defaults()
     argv = list(sys.argv[1:] if argv is None else argv)
     args = None
     try:
@@ -67,6 +69,19 @@ def _main(argv: Optional[Sequence[str]], comm: "Optional[MPI.Comm]") -> int:
         if comm is not None and comm.size > 1:
             comm.Abort(1)
         return 1
+
+
+# Set by a launcher (mpirun, srun, a PMI server) in every process it starts
+_LAUNCHED = ("OMPI_COMM_WORLD_SIZE", "PMIX_RANK", "PMI_RANK", "PMI_SIZE", "SLURM_PROCID")
+
+
+def _singleton_mpi_defaults() -> None:
+    """A process started without a launcher is one rank on its own: Open MPI's UCX transport,
+    which it probes at MPI_Init, then carries nothing but costs about 0.2 s of the start-up.
+    Such a process takes the ob1 transport (shared memory and TCP), unless OMPI_MCA_pml says
+    otherwise; under a launcher the ranks keep Open MPI's own choice."""
+    if not any(name in os.environ for name in _LAUNCHED):
+        os.environ.setdefault("OMPI_MCA_pml", "ob1")
 
 
 def _command(args, comm: "Optional[MPI.Comm]") -> int:

@@ -232,3 +232,23 @@ def test_a_cache_home_that_is_a_file_is_bad_input(tmp_path, monkeypatch, capsys)
     assert main(["run", "curl3d", "--T", "1", "--cells", "2"]) == 2
     assert "fenics is not a directory" in capsys.readouterr().err
     assert main(["scenes"]) == 0
+
+
+@pytest.mark.serial
+def test_a_process_without_a_launcher_skips_mpis_ucx_probe_and_a_launched_one_keeps_it(
+        monkeypatch):
+    """The command alone sets Open MPI's ob1 transport (the UCX probe costs 0.2 s of its
+    start-up); a launcher's rank, or a user's own choice, keeps what it has."""
+    from fem_dual import cli
+
+    for name in cli._LAUNCHED + ("OMPI_MCA_pml",):
+        monkeypatch.delenv(name, raising=False)
+    cli._singleton_mpi_defaults()
+    assert os.environ["OMPI_MCA_pml"] == "ob1"
+    monkeypatch.setenv("OMPI_MCA_pml", "ucx")
+    cli._singleton_mpi_defaults()
+    assert os.environ["OMPI_MCA_pml"] == "ucx"
+    monkeypatch.delenv("OMPI_MCA_pml")
+    monkeypatch.setenv("OMPI_COMM_WORLD_SIZE", "2")
+    cli._singleton_mpi_defaults()
+    assert "OMPI_MCA_pml" not in os.environ
