@@ -30,8 +30,10 @@ def _timed(cmd, env) -> tuple:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=15)
-    parser.add_argument("run", nargs="*", default=["curl3d", "--T", "2"])
+    parser.add_argument("run", nargs=argparse.REMAINDER,
+                        help="the scene and options of `fem-dual run` (default: curl3d --T 2)")
     args = parser.parse_args()
+    args.run = args.run or ["curl3d", "--T", "2"]
     env = dict(os.environ)
     env.pop("PYTHONDONTWRITEBYTECODE", None)  # as a user's shell: bytecode is cached
     exe = str(Path(sys.executable).parent / "fem-dual")

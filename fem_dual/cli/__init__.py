@@ -73,15 +73,40 @@ def _main(argv: Optional[Sequence[str]], comm: "Optional[MPI.Comm]") -> int:
 
 # Set by a launcher (mpirun, srun, a PMI server) in every process it starts
 _LAUNCHED = ("OMPI_COMM_WORLD_SIZE", "PMIX_RANK", "PMI_RANK", "PMI_SIZE", "SLURM_PROCID")
+# Open MPI's parameter files: the system's (Debian's path), the user's, and any named by
+# OMPI_MCA_mca_base_param_files
+_MCA_FILES = ("/etc/openmpi/openmpi-mca-params.conf", "~/.openmpi/mca-params.conf")
 
 
 def _singleton_mpi_defaults() -> None:
-    """A process started without a launcher is one rank on its own: Open MPI's UCX transport,
-    which it probes at MPI_Init, then carries nothing but costs about 0.2 s of the start-up.
-    Such a process takes the ob1 transport (shared memory and TCP), unless OMPI_MCA_pml says
-    otherwise; under a launcher the ranks keep Open MPI's own choice."""
-    if not any(name in os.environ for name in _LAUNCHED):
-        os.environ.setdefault("OMPI_MCA_pml", "ob1")
+    """A process started without a launcher is one rank on its own: Open MPI opens and probes
+    every transport of its pml framework at MPI_Init (here the cm one's, about 0.2 s of the
+    start-up) though one rank has no peer to reach. Such a process takes the ob1 pml, unless
+    OMPI_MCA_pml or a parameter file chooses a pml or excludes ob1; under a launcher the ranks
+    keep Open MPI's own choice."""
+    if any(name in os.environ for name in _LAUNCHED) or "OMPI_MCA_pml" in os.environ:
+        return
+    files = list(_MCA_FILES) + os.environ.get("OMPI_MCA_mca_base_param_files", "").split(":")
+    for value in (_mca_value(name, "pml") for name in files if name):
+        if value is not None and (not value.startswith("^")
+                                  or "ob1" in value[1:].replace(" ", "").split(",")):
+            return
+    os.environ["OMPI_MCA_pml"] = "ob1"
+
+
+def _mca_value(path: str, key: str) -> Optional[str]:
+    """The value an Open MPI parameter file gives `key` ("key = value" lines, # comments);
+    None where the file or the key is not there."""
+    try:
+        lines = open(os.path.expanduser(path), encoding="utf-8", errors="replace").readlines()
+    except OSError:
+        return None
+    value = None
+    for line in lines:
+        name, sep, rest = line.split("#", 1)[0].partition("=")
+        if sep and name.strip() == key:
+            value = rest.strip()
+    return value
 
 
 def _command(args, comm: "Optional[MPI.Comm]") -> int:

@@ -4,6 +4,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import Optional
 
 import meshio
 import numpy as np
@@ -235,20 +236,34 @@ def test_a_cache_home_that_is_a_file_is_bad_input(tmp_path, monkeypatch, capsys)
 
 
 @pytest.mark.serial
-def test_a_process_without_a_launcher_skips_mpis_ucx_probe_and_a_launched_one_keeps_it(
-        monkeypatch):
-    """The command alone sets Open MPI's ob1 transport (the UCX probe costs 0.2 s of its
-    start-up); a launcher's rank, or a user's own choice, keeps what it has."""
+def test_a_process_without_a_launcher_skips_mpis_pml_probe_and_a_launched_one_keeps_it(
+        monkeypatch, tmp_path):
+    """The command alone takes Open MPI's ob1 pml (probing the others costs 0.2 s of its
+    start-up); a launcher's rank, or a user's own choice in the environment or in a parameter
+    file, keeps what it has. A file that only excludes other pmls leaves ob1 free."""
     from fem_dual import cli
 
-    for name in cli._LAUNCHED + ("OMPI_MCA_pml",):
+    for name in cli._LAUNCHED + ("OMPI_MCA_pml", "OMPI_MCA_mca_base_param_files"):
         monkeypatch.delenv(name, raising=False)
-    cli._singleton_mpi_defaults()
-    assert os.environ["OMPI_MCA_pml"] == "ob1"
-    monkeypatch.setenv("OMPI_MCA_pml", "ucx")
-    cli._singleton_mpi_defaults()
-    assert os.environ["OMPI_MCA_pml"] == "ucx"
-    monkeypatch.delenv("OMPI_MCA_pml")
-    monkeypatch.setenv("OMPI_COMM_WORLD_SIZE", "2")
-    cli._singleton_mpi_defaults()
-    assert "OMPI_MCA_pml" not in os.environ
+    params = tmp_path / "mca-params.conf"
+    monkeypatch.setattr(cli, "_MCA_FILES", (str(params),))
+
+    def chosen(text=None, **env) -> Optional[str]:
+        if text is not None:
+            params.write_text(text)
+        with monkeypatch.context() as patch:
+            patch.delenv("OMPI_MCA_pml", raising=False)
+            for name, value in env.items():
+                patch.setenv(name, value)
+            cli._singleton_mpi_defaults()
+            return os.environ.get("OMPI_MCA_pml")
+    assert chosen() == "ob1"  # no file
+    assert chosen("# none\nbtl = ^openib\n") == "ob1"
+    assert chosen("pml = ^ucx  # excluded only\n") == "ob1"
+    assert chosen("pml = ucx\n") is None  # the user's choice
+    assert chosen("pml = ^cm, ob1\n") is None  # ob1 excluded
+    assert chosen("btl = self\n", OMPI_MCA_pml="ucx") == "ucx"
+    assert chosen(OMPI_COMM_WORLD_SIZE="2") is None  # a launcher's rank
+    other = tmp_path / "other.conf"
+    other.write_text("pml = cm\n")
+    assert chosen("", OMPI_MCA_mca_base_param_files=str(other)) is None
