@@ -37,10 +37,8 @@ class LoopState:
         self.chunk = CHUNK_SLABS if config.rtol is None else FIRST_CHUNK
         # whether the slab length has settled (the last slab kept it): while the controller
         # still shortens, grows and retries, chunks that stop after one slab would cost more
-        # than the slab loop. A run's first slab proves its length in the slab loop: a chunk
-        # refused at its first slab computed all the others in vain (Ziegler T = 1000 asked
-        # in 250 slabs too long for the tolerance: 16 ms instead of 5 for the same 500 slabs)
-        self.settled = False
+        # than the slab loop
+        self.settled = config.rtol is None
         self.resumed_from: Optional[Dict[str, float]] = None
 
     def resume(self, comm: MPI.Comm, restart: Optional[Restart], acc: Optional[Accumulator],
@@ -60,7 +58,5 @@ class LoopState:
             return
         self.k, self.z, self.d, self.lengths, schedule.state, t = state
         self.resumed_from = {"slab": self.k, "t": t}
-        # fixed slabs go on in chunks, as the run resumed did (the same recurrence, bit for bit)
-        self.settled = self.chunk == CHUNK_SLABS
 
 

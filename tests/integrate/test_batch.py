@@ -24,8 +24,7 @@ def test_batched_slabs_agree_with_solving_every_slab(scene, params, monkeypatch)
     with monkeypatch.context() as patch:  # the same bases, slab by slab
         patch.setattr(loop, "batch_step", lambda *a: (0, None))
         one_by_one = run(RunConfig.create(scene, params, superpose="yes", **args))
-    # (the first slab proves its length in the slab loop, the rest come in chunks)
-    assert batched.solver["batched_slabs"] == 39 and direct.solver["batched_slabs"] == 0
+    assert batched.solver["batched_slabs"] == 40 and direct.solver["batched_slabs"] == 0
     assert one_by_one.solver["batched_slabs"] == 0
     for other in (direct, one_by_one):
         assert np.array_equal(batched.t, other.t)
@@ -51,29 +50,30 @@ def test_chunks_give_the_numbers_of_one_chunk(monkeypatch):
     monkeypatch.setattr(chunks, "CHUNK_SLABS", 7)
     monkeypatch.setattr(state, "CHUNK_SLABS", 7)
     chunked = run(config)
-    # the first slab in the slab loop; chunks of 7 leave the last slab alone, to the loop too
-    assert whole.solver["batched_slabs"] == 99 and chunked.solver["batched_slabs"] == 98
+    assert whole.solver["batched_slabs"] == chunked.solver["batched_slabs"] == 100
     assert np.array_equal(whole.x[-1], chunked.x[-1])  # the slab-to-slab recurrence
     assert _close(chunked.x, whole.x, 1e-14)
     assert chunked.error_estimate == pytest.approx(whole.error_estimate, rel=1e-12)
 
 
 @pytest.mark.serial
-def test_a_length_refused_at_the_first_slab_costs_one_slab_not_a_chunk(monkeypatch):
-    """250 slabs of T = 1000 are too long for the default tolerance: the first is refused and
-    the run goes on in 500. No chunk is computed at the refused length, and the run gives the
-    numbers of a run asked for 500 slabs."""
+def test_a_length_refused_at_the_first_slab_keeps_the_chunks_whole(monkeypatch):
+    """250 slabs of T = 1000 are too long for the default tolerance: the first chunk is refused
+    at its first slab, the slab loop halves it, and the other 499 slabs come in one chunk (not
+    in chunks restarted small), as the slabs of a run asked for 500 do."""
     args = dict(T=1000.0, cells=4, degree=4, reference="none")
     asked = run(RunConfig.create("ziegler", slabs=500, **args))
-    lengths = []
+    chunked = []
     original = chunks._chunk
-    monkeypatch.setattr(chunks, "_chunk", lambda sim, config, state, schedule, *a: (
-        lengths.append(schedule.current()[1]) or original(sim, config, state, schedule, *a)))
+    monkeypatch.setattr(chunks, "_chunk", lambda sim, config, state, schedule, weights, bound,
+                        count: chunked.append((schedule.current()[1], count)) or original(
+                            sim, config, state, schedule, weights, bound, count))
     halved = run(RunConfig.create("ziegler", slabs=250, **args))
     assert halved.solver["rejected_slabs"] == 1 and halved.slab_lengths == [2.0] * 500
-    assert lengths and set(lengths) == {2.0}
-    assert np.array_equal(halved.x, asked.x) and np.array_equal(halved.v, asked.v)
-    assert halved.error_estimate == asked.error_estimate
+    assert chunked == [(4.0, 250), (2.0, 499)]
+    assert halved.solver["batched_slabs"] == 499 and asked.solver["batched_slabs"] == 500
+    assert _close(halved.x, asked.x, 1e-13) and _close(halved.v, asked.v, 1e-13)
+    assert halved.error_estimate == pytest.approx(asked.error_estimate, rel=1e-6)
 
 
 @pytest.mark.serial
@@ -89,7 +89,7 @@ def test_a_chunk_stops_where_the_slab_loop_refuses():
     assert str(failures[0]) == str(failures[1])
     assert "where H_d (quadratic in the state) overflows float64" in str(failures[0])
     kept = [f.partial for f in failures]
-    assert kept[0].solver["batched_slabs"] == failures[0].slab - 1  # all but the first
+    assert kept[0].solver["batched_slabs"] == failures[0].slab
     assert np.isfinite(kept[0].x).all() and len(kept[0].slab_lengths) == failures[0].slab
     assert _close(kept[0].x[:-200], kept[1].x[:-200], 1e-9)
 
