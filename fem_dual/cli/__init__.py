@@ -98,7 +98,8 @@ def _mca_value(path: str, key: str) -> Optional[str]:
     """The value an Open MPI parameter file gives `key` ("key = value" lines, # comments);
     None where the file or the key is not there."""
     try:
-        lines = open(os.path.expanduser(path), encoding="utf-8", errors="replace").readlines()
+        with open(os.path.expanduser(path), encoding="utf-8", errors="replace") as text:
+            lines = text.readlines()
     except OSError:
         return None
     value = None

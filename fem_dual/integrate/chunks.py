@@ -193,9 +193,8 @@ def batch_step(sim: "Simulation", config: RunConfig, state: LoopState, schedule:
     # chunks grow while their slabs are all taken (the length settled), and start small again
     # after one stopped early (a controller still finding its length wastes little). Fixed
     # slabs refused at a chunk's first slab keep their chunk size: the slab loop halves that
-    # slab, and the halved length is the one the rest keeps (Ziegler T = 1000 asked in 250
-    # slabs too long for the tolerance restarted at 8, 32, 128 slabs: 16 ms for what 500
-    # slabs asked do in 5)
+    # slab, and the halved length is the one the rest keeps (small chunks would cost a run
+    # asked in slabs too long for the tolerance three times what the halved slabs need)
     if done == count:
         state.chunk *= 4
     elif done or config.rtol is not None:
