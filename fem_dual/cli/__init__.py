@@ -2,7 +2,7 @@
 
 Exit status: 0 success, 2 bad input (one line on stderr naming the value), 3 a failed solve or a
 failed write (the slabs completed before it are kept, in the output files and in the JSON with
-status "failed"), 130/143 stopped by SIGINT/SIGTERM after a slab (kept alike, status
+status "failed"), or FFCx's cache of compiled forms failing (one line), 130/143 stopped by SIGINT/SIGTERM after a slab (kept alike, status
 "interrupted"), 1 an internal error (under MPI it ends every rank); `stress` exits 1 when a case
 did not behave as it must.
 
@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Dict, Optional, Sequence
 from fem_dual import faults
 from fem_dual.cli.parser import build_parser, join_negative_values, key_value
 from fem_dual.cli.streams import escaped, json_only_on_stdout, json_out, print0, rank, world
-from fem_dual.errors import InputError, SolveError
+from fem_dual.errors import InputError, SolveError, one_line
 
 if TYPE_CHECKING:  # annotations only
     from mpi4py import MPI
@@ -62,13 +62,36 @@ def _main(argv: Optional[Sequence[str]], comm: "Optional[MPI.Comm]") -> int:
     except Exception as exc:  # a bug: say so, and end every rank (others may wait for this one)
         import traceback
 
-        traceback.print_exc()
+        fault = _cache_fault(exc)
+        if fault is None:
+            traceback.print_exc()
         comm = comm if comm is not None else _loaded_world()
-        print(f"fem-dual: internal error on rank {rank(comm)}: {escaped(exc)}",
-              file=sys.stderr)
+        status = 1 if fault is None else SolveError.exit_status
+        print(f"fem-dual: error: {fault}" if fault is not None else
+              f"fem-dual: internal error on rank {rank(comm)}: {escaped(exc)}", file=sys.stderr)
         if comm is not None and comm.size > 1:
-            comm.Abort(1)
-        return 1
+            comm.Abort(status)
+        return status
+
+
+def _cache_fault(exc: Exception) -> Optional[str]:
+    """One line for a failure of FFCx's cache of compiled forms (a compiled module missing or
+    damaged, a compilation that never finished, a cache that cannot be written); None for any
+    other exception."""
+    jit = sys.modules.get("dolfinx.jit")
+    if jit is None:
+        return None
+    cache = str(jit.get_parameters()["cache_dir"])
+    text = str(exc)
+    ffcx = ((isinstance(exc, ModuleNotFoundError) and "Unable to find JIT module" in text)
+            or (isinstance(exc, TimeoutError) and "JIT compilation timed out" in text))
+    files = isinstance(exc, (OSError, ImportError)) and (
+        cache in text or str(getattr(exc, "filename", None) or "").startswith(cache))
+    if not (ffcx or files):
+        return None
+    return (f"FFCx's cache of compiled forms ({cache}) failed: {one_line(exc).rstrip('.')}; "
+            "remove that directory (fem-dual compiles its forms again) or point "
+            "XDG_CACHE_HOME at a writable one, and run again")
 
 
 # Set by a launcher (mpirun, srun, a PMI server) in every process it starts

@@ -267,3 +267,17 @@ def test_a_process_without_a_launcher_skips_mpis_pml_probe_and_a_launched_one_ke
     other = tmp_path / "other.conf"
     other.write_text("pml = cm\n")
     assert chosen("", OMPI_MCA_mca_base_param_files=str(other)) is None
+
+
+@pytest.mark.serial
+def test_a_damaged_jit_cache_is_one_line_not_a_traceback(monkeypatch, capsys):
+    """A compiled module that FFCx's cache marks ready but cannot load (deleted, truncated)."""
+    from fem_dual.integrate import simulation
+
+    def damaged(*args, **kwargs):
+        raise ModuleNotFoundError("Unable to find JIT module.")
+    monkeypatch.setattr(simulation, "make_backend", damaged)
+    status = main(["run", "ziegler", "--T", "1"])
+    err = capsys.readouterr().err
+    assert status == 3 and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert "FFCx's cache of compiled forms" in err and "remove that directory" in err
