@@ -8,7 +8,7 @@ NP ?= 2
 APT_PACKAGES := python3-dolfinx-real python3-ufl python3-petsc4py python3-mpi4py python3-numpy \
 	python3-meshio python3-h5py python3-scipy python3-matplotlib python3-pytest python3-venv \
 	python3-setuptools python3-tqdm python3-hypothesis python3-cffi python3-pytest-xdist \
-	openmpi-bin
+	openmpi-bin libopenblas0-pthread
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
 # OpenMPI refuses to run as root without these; CI runs as root.
@@ -49,11 +49,12 @@ demo: install
 # The serial tests on two workers (pytest-xdist; one per core), then the MPI tests under mpirun.
 # `make test-all` adds the long cases (marked slow): run it before every release.
 SLOW ?=
+# One BLAS thread per test process: two workers (or two ranks) already fill the two cores.
 test-serial: install
-	$(VPY) -m pytest -q --color=no -n $(NP) $(SLOW) tests
+	OPENBLAS_NUM_THREADS=1 $(VPY) -m pytest -q --color=no -n $(NP) $(SLOW) tests
 
 test-mpi: install
-	mpirun -n $(NP) $(VPY) -m pytest -q --color=no -m mpi $(SLOW) tests
+	OPENBLAS_NUM_THREADS=1 mpirun -n $(NP) $(VPY) -m pytest -q --color=no -m mpi $(SLOW) tests
 
 test: test-serial test-mpi
 

@@ -702,7 +702,8 @@ def test_runs_without_the_compiled_loops_give_the_same_answer(tmp_path, monkeypa
     theirs = run(RunConfig.create("curl3d", **config))
     assert ours.status == theirs.status == "ok"
     assert np.abs(ours.x - theirs.x).max() <= 1e-13
-    assert abs(ours.error_estimate - theirs.error_estimate) <= 1e-6 * theirs.error_estimate
+    # equal to round-off: the estimate (1e-11 here) is a difference of states of size 0.3
+    assert abs(ours.error_estimate - theirs.error_estimate) <= 1e-6 * theirs.error_estimate + 1e-15
     assert {"rk4", "band", "newton", "tangents"} <= set(ours.solver["compiled_loops"])
     assert theirs.solver["compiled_loops"] == []
     assert "no C compiler" in theirs.solver["compiled_loops_unavailable"]
