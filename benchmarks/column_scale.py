@@ -25,7 +25,7 @@ from fem_dual import RunConfig  # first: it sets one BLAS thread per rank under 
 import numpy as np  # noqa: E402
 from mpi4py import MPI  # noqa: E402
 from fem_dual.integrate.simulation import Simulation
-from fem_dual.analysis.flutter import critical_load, eigen_rate
+from fem_dual.analysis.flutter import critical_load, eigen_rate, eigen_tolerance
 from fem_dual.mpi import allreduce, print0
 from fem_dual.scenes.column import lowest_mode, scaled_column, scaled_column_params
 
@@ -51,7 +51,8 @@ def main(argv=None) -> int:
     comm = MPI.COMM_WORLD
     tic = time.perf_counter()
     unloaded = scaled_column(args.links)
-    P_cr = critical_load(eigen_rate(unloaded), 1e-9, first=1.0, rel_width=1e-6)
+    P_cr = critical_load(eigen_rate(unloaded), eigen_tolerance(unloaded), first=1.0,
+                         rel_width=1e-6)  # a threshold above the eigenvalues' round-off
     scene = scaled_column(args.links, args.P_ratio * P_cr)
     lam = np.linalg.eigvals(np.linalg.solve(scene.mass_matrix(), scene.stiffness_matrix()))
     omega = float(np.sqrt(abs(lam[int(np.argmin(np.abs(lam)))].real)))
