@@ -233,16 +233,18 @@ def orthonormal(R: np.ndarray, columns: np.ndarray) -> np.ndarray:
 
 
 def block_slices(Kr: np.ndarray) -> List[slice]:
-    """The diagonal blocks of a block-diagonal Kr (as real_modes builds it), in order."""
-    slices, start, end = [], 0, -1
-    for i in range(len(Kr)):
-        nonzero = np.flatnonzero(Kr[i]) if Kr[i].any() else np.array([i])
-        column = np.flatnonzero(Kr[:, i]) if Kr[:, i].any() else np.array([i])
-        end = max(end, i, int(nonzero.max()), int(column.max()))
-        if i == end:
-            slices.append(slice(start, i + 1))
-            start = i + 1
-    return slices
+    """The diagonal blocks of a block-diagonal Kr (as real_modes builds it), in order: a block
+    ends at i where no entry of the rows and columns up to i reaches beyond i."""
+    n = len(Kr)
+    if n == 0:
+        return []
+    nonzero, index = np.asarray(Kr) != 0, np.arange(n)
+    row_last = np.where(nonzero.any(axis=1), n - 1 - np.argmax(nonzero[:, ::-1], axis=1), index)
+    col_last = np.where(nonzero.any(axis=0), n - 1 - np.argmax(nonzero[::-1, :], axis=0), index)
+    reach = np.maximum.accumulate(np.maximum(index, np.maximum(row_last, col_last)))
+    ends = np.flatnonzero(reach == index)
+    starts = np.concatenate([[0], ends[:-1] + 1])
+    return [slice(int(a), int(b) + 1) for a, b in zip(starts, ends)]
 
 
 def block_motion(Kr: np.ndarray, slices: List[slice], r0: np.ndarray, rv0: np.ndarray,

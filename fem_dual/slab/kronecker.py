@@ -86,6 +86,15 @@ class KroneckerProblem:
         # right factors of the residual's products, for all columns and for this rank's own
         self._right = {name: (_RightFactor(value.T, slice(None)), _RightFactor(value.T, self.mine))
                        for name, value in self.c.items()}
+        self._block_probes = None
+
+    def block_probes(self) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(blocks, starts, gathers): `decoupled_blocks` of the scene's matrices and their
+        `probes`, once per scene."""
+        if self._block_probes is None:
+            blocks = decoupled_blocks(self.c)
+            self._block_probes = (blocks, *probes(blocks))
+        return self._block_probes
 
     def velocity(self, mv: np.ndarray) -> np.ndarray:
         """v from rows of momenta M v (a Cholesky factor of M kept per scene; none for M = I)."""
@@ -507,8 +516,7 @@ class KroneckerSuperposition(Bases):
         self._shared: set = set()
         self.basis_solves = 0
         n = problem.n
-        self.blocks = decoupled_blocks(problem.c)
-        starts, gathers = probes(self.blocks)
+        self.blocks, starts, gathers = problem.block_probes()
         if len(starts) < 2 * n:
             self.starts, self.gathers = starts, gathers
         else:  # coupled: the unit start states, a dense basis
@@ -517,7 +525,7 @@ class KroneckerSuperposition(Bases):
     @staticmethod
     def solves_per_basis(problem: KroneckerProblem) -> int:
         """Slab solves that one slab length's basis costs."""
-        return min(2 * problem.n, len(probes(decoupled_blocks(problem.c))[0]))
+        return min(2 * problem.n, len(problem.block_probes()[1]))
 
     def ensure(self, dt: float) -> None:
         """Solve the basis of slabs of length dt unless it is at hand, and check its slab map.
