@@ -344,29 +344,19 @@ class _FastDiagonalisation:
 
     def setup_dt(self, dt: float) -> None:
         p = self.p
-        w2 = self._modes()
+        w2 = self._modes()[p.mine]
         T = p.time_free
-        S, Mm = T["S"].toarray(), T["Mm"].toarray()
-        skew = T["G"].toarray() - T["C"].toarray()
-        nf, pd = p.nf, p.degree
-        self.factors = []
-        for k in p.mine:
-            block = np.zeros((2 * nf, 2 * nf))  # interleaved (xi_i, eta_i)
-            block[0::2, 0::2] = S / (dt * w2[k]) + dt * Mm
-            block[0::2, 1::2] = skew
-            block[1::2, 0::2] = skew.T
-            block[1::2, 1::2] = dt * w2[k] * Mm + S / dt
-            if not np.isfinite(block).all():  # dt w^2 beyond float64 (a horizon of 1e300)
-                raise SolveError(f"the slab of length {dt:.3g} overflows float64 in its time "
-                                 f"matrices (frequency {np.sqrt(w2[k]):.3g}); shorten --T or "
-                                 "use more slabs")
-            self.factors.append(sla.cholesky_banded(_banded(block, 2 * pd + 1), lower=False))
-        # small blocks: their inverses, applied to all modes at once (no loop per mode)
-        self.inverses = None
-        if len(self.factors) * (2 * nf) ** 2 <= INVERSE_ENTRIES:
-            unit = np.eye(2 * nf)
-            self.inverses = np.array([sla.cho_solve_banded((f, False), unit)
-                                      for f in self.factors]).reshape(-1, 2 * nf, 2 * nf)
+        time = (T["S"].toarray(), T["Mm"].toarray(), T["G"].toarray() - T["C"].toarray())
+        # small blocks: their inverses L^-T L^-1 (block = L L^T), applied to all modes at once
+        # (no loop per mode); larger ones: banded Cholesky factors, solved mode by mode
+        self.inverses, self.factors = None, []
+        if len(w2) * (2 * p.nf) ** 2 <= INVERSE_ENTRIES:
+            L_inv = np.linalg.inv(np.linalg.cholesky(_mode_blocks(*time, dt, w2)))
+            self.inverses = np.matmul(np.swapaxes(L_inv, 1, 2), L_inv)
+        else:
+            self.factors = [sla.cholesky_banded(_banded(_mode_blocks(*time, dt, w2[k:k + 1])[0],
+                                                        2 * p.degree + 1), lower=False)
+                            for k in range(len(w2))]
 
     def apply(self, pc, x, y) -> None:
         p = self.p
@@ -388,6 +378,25 @@ class _FastDiagonalisation:
                 z_xi[:, i], z_eta[:, i] = z[0::2], z[1::2]
         Z_xi, Z_eta = _allgather_columns(p, z_xi), _allgather_columns(p, z_eta)
         y.array[:] = _pack(self.out_xi(Z_xi), self.out_eta(Z_eta))
+
+
+def _mode_blocks(S: np.ndarray, Mm: np.ndarray, skew: np.ndarray, dt: float,
+                 w2: np.ndarray) -> np.ndarray:
+    """(modes, 2 nf, 2 nf): the symmetric model's 1D system of each mode w^2 (w2), interleaved
+    (xi_i, eta_i) (see _FastDiagonalisation); SolveError where dt w^2 leaves float64."""
+    nf = len(S)
+    with np.errstate(over="ignore", invalid="ignore"):
+        blocks = np.zeros((len(w2), 2 * nf, 2 * nf))
+        blocks[:, 0::2, 0::2] = S / (dt * w2[:, None, None]) + dt * Mm
+        blocks[:, 0::2, 1::2] = skew
+        blocks[:, 1::2, 0::2] = skew.T
+        blocks[:, 1::2, 1::2] = dt * w2[:, None, None] * Mm + S / dt
+    finite = np.isfinite(blocks).all(axis=(1, 2))
+    if not finite.all():  # dt w^2 beyond float64 (a horizon of 1e300)
+        k = int(np.flatnonzero(~finite)[0])
+        raise SolveError(f"the slab of length {dt:.3g} overflows float64 in its time matrices "
+                         f"(frequency {np.sqrt(w2[k]):.3g}); shorten --T or use more slabs")
+    return blocks
 
 
 def _allgather_columns(p: KroneckerProblem, local: np.ndarray) -> np.ndarray:

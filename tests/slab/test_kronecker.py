@@ -158,3 +158,24 @@ def test_the_predictor_base_is_never_dropped_silently(capsys):
     assert main(["run", "column", "--param", "links=6", "--base", "predictor",
                  "--assembly", "kronecker"]) == 2
     assert "base=predictor needs assembly=forms" in capsys.readouterr().err
+
+
+def test_the_preconditioners_inverses_and_banded_factors_agree(monkeypatch):
+    """Small problems keep the modes' block inverses, large ones banded Cholesky factors: the
+    same operator; a slab whose time matrices leave float64 is refused with the frequency."""
+    from fem_dual.slab import kronecker
+    scene = scaled_column(6, 2.0)
+    x0, v0 = lowest_mode(scene), np.zeros(scene.n)
+    outputs = []
+    for entries in (kronecker.INVERSE_ENTRIES, 0):
+        monkeypatch.setattr(kronecker, "INVERSE_ENTRIES", entries)
+        r = run(RunConfig.create(scene, T=1.0, x0=x0, v0=v0, slabs=2, cells=4, degree=3,
+                                 assembly="kronecker", superpose="no", coordinates="physical",
+                                 base="start"))
+        outputs.append((r.x, r.v, r.solver["ksp_iterations"]))
+    assert _rel(outputs[0][0], outputs[1][0]) < 1e-12
+    assert _rel(outputs[0][1], outputs[1][1]) < 1e-12
+    assert outputs[0][2] == outputs[1][2]
+    S = np.eye(2)
+    with pytest.raises(SolveError, match=r"length 1e\+300 overflows float64 .*frequency 1e\+150"):
+        kronecker._mode_blocks(S, S, 0 * S, 1e300, np.array([1e-300, 1e300]))
