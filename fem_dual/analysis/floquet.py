@@ -14,7 +14,7 @@ from mpi4py import MPI
 from fem_dual import faults
 from fem_dual.errors import SolveError
 
-__all__ = ["SlabFlow", "monodromy", "nontrivial", "multiplier_distance", "stop_if_asked",
+__all__ = ["CHECK_TOL", "SlabFlow", "monodromy", "nontrivial", "multiplier_distance", "stop_if_asked",
            "floquet_multipliers", "vector_field", "MULTIPLIER_TOL", "MAX_FOLD"]
 
 MAX_FOLD = 12  # an orbit closing after T/k is a k-fold cover, checked for k up to this or the
@@ -63,6 +63,10 @@ def _rhs_and_jacobian(scene, length: float = 0.0):
     return f, jac
 
 
+#: DOP853's rtol and atol in the check of an orbit (its motion and variational equation)
+CHECK_TOL = 1e-13
+
+
 def monodromy(scene, z0: np.ndarray, T: float, folds: int = MAX_FOLD, length: float = 0.0
               ) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(z(T), Phi(T), z(T/k) for k = 2 .. folds): DOP853 at rtol = atol = 1e-13 on the motion
@@ -78,7 +82,7 @@ def monodromy(scene, z0: np.ndarray, T: float, folds: int = MAX_FOLD, length: fl
         return np.concatenate([f(z), (jac(z) @ Phi).ravel()])
 
     y0 = np.concatenate([z0, np.eye(m).ravel()])
-    sol = solve_ivp(rhs, (0.0, T), y0, method="DOP853", rtol=1e-13, atol=1e-13,
+    sol = solve_ivp(rhs, (0.0, T), y0, method="DOP853", rtol=CHECK_TOL, atol=CHECK_TOL,
                     dense_output=True)
     if not sol.success:
         raise SolveError(f"the check of the orbit by DOP853 failed: {sol.message}")

@@ -11,7 +11,8 @@ import numpy as np
 from fem_dual import faults
 from fem_dual.compat import quiet_jit_logging
 from fem_dual.errors import InputError, SolveError
-from fem_dual.analysis.floquet import FLOW_START_CELLS, MAX_FOLD, SlabFlow, monodromy
+from fem_dual.analysis.floquet import (CHECK_TOL, FLOW_START_CELLS, MAX_FOLD, SlabFlow,
+                                      monodromy)
 from fem_dual.analysis.orbit_input import Energy
 from fem_dual.analysis.orbit.advice import _orbit_advice
 from fem_dual.analysis.orbit.energy import reach_energy
@@ -247,12 +248,13 @@ def _record_check(result: OrbitResult, flow: FlowMultipliers, errors: Multiplier
     # the period of the exact orbit through the reported start (the return time of
     # DOP853's motion to the section through z(0) across the flow): the discrete orbit's
     # states differ in energy by its error, and periods by dT/dE times that (a pendulum
-    # at p = 2: 126 times the degree p + 1 difference), so the estimate takes it in
+    # at p = 2: 126 times the degree p + 1 difference), so the estimate takes it in, with the
+    # return time's own error (DOP853's tolerance, ten times, over the period)
     crossing = float(field(zT) @ direction)
     returned = (T - float((zT - z0) @ direction) / crossing) if crossing > 0 else None
     if returned is not None:
         result.estimate["period"] = max(result.estimate.get("period", 0.0),
-                                        abs(returned - T))
+                                        abs(returned - T) + 10 * CHECK_TOL * abs(T))
     result.estimate["multipliers"] = max(errors.error, errors.roundoff)
     result.estimate["multipliers_roundoff"] = errors.roundoff
     result.timings["monodromy_cells"] = flow.cells
