@@ -42,6 +42,7 @@ from fem_dual.slab.superposition import (Bases, checked, first, refused, select,
 __all__ = ["TimeMatrices", "KroneckerProblem", "KroneckerSolver", "KroneckerSampler",
            "KroneckerSuperposition", "KRONECKER_DEFAULTS"]
 
+DENSE_TIME = 64  # free time dofs up to which the operator multiplies dense time matrices
 INVERSE_ENTRIES = 4_000_000  # the preconditioner keeps explicit block inverses up to 32 MB
 KRONECKER_DEFAULTS: Dict[str, str] = {"ksp_type": "cg", "ksp_rtol": "1e-13", "ksp_atol": "1e-300",
                                       "ksp_max_it": "2000"}
@@ -69,6 +70,11 @@ class KroneckerProblem:
         self.nf = len(self.free)
         self.time_free = {k: (v[self.free][:, self.free] if k not in ("e", "m")
                               else v[self.free]) for k, v in self.time.glob.items()}
+        # the operator's time matrices: dense where they are small (a sparse product's own
+        # overhead then outweighs its work)
+        self.time_operator = {k: (v.toarray() if hasattr(v, "toarray") else v)
+                              for k, v in self.time_free.items()} \
+            if self.nf <= DENSE_TIME else self.time_free
         counts = [n // comm.size + (1 if r < n % comm.size else 0) for r in range(comm.size)]
         self.offsets = np.concatenate([[0], np.cumsum(counts)])
         self.mine = np.arange(self.offsets[comm.rank], self.offsets[comm.rank + 1])
@@ -118,13 +124,19 @@ class KroneckerProblem:
         """dS for the trial values (Wxi, Weta) tested with the rows of the time matrices T
         (global or per cell); `affine` adds the base-state terms; only the output components
         `cols` (default all). `apply(X, W)` multiplies a time matrix with W."""
-        dt = self.dt
+        dt, n = self.dt, self.n
         own = cols is not None  # the operator asks for this rank's columns, the sampler for all
         apply = apply or (lambda X, W: X @ W)
+        both = np.concatenate([Wxi, Weta], axis=-1)
+        products: Dict[str, np.ndarray] = {}  # each time matrix on both fields, once
 
         def right(X, W, name):
             factor = self._right[name][own]
-            return 0.0 if factor.zero else factor(apply(T[X], W))
+            if factor.zero:
+                return 0.0
+            if X not in products:
+                products[X] = apply(T[X], both)
+            return factor(products[X][..., :n] if W is Wxi else products[X][..., n:])
 
         r_xi = (-right("C", Weta, "AiKt") + right("S", Wxi, "Ai") / dt
                 - dt * right("Mm", Weta, "BiDt") + dt * right("Mm", Wxi, "Bi")
@@ -302,7 +314,7 @@ class _Operator:
     def mult(self, mat, x, y) -> None:
         p = self.p
         W = _gather(p, x.array_r)
-        r_xi, r_eta = p.residual(p.time_free, W[:, :p.n], W[:, p.n:], affine=False,
+        r_xi, r_eta = p.residual(p.time_operator, W[:, :p.n], W[:, p.n:], affine=False,
                                  cols=p.mine)
         y.array[:] = _pack(r_xi, r_eta)
 
