@@ -345,8 +345,7 @@ class _FastDiagonalisation:
         if self._w2 is None or self._constants is not self.p.c:
             p, c = self.p, self.p.c
             self._constants = c
-            w2, Phi = sla.eigh(c["Ke"], c["M"])
-            Phi_inv = np.linalg.inv(Phi)
+            w2, Phi, Phi_inv = _pencil_modes(c["Ke"], c["M"])
             self.in_xi = _RightFactor(Phi_inv.T, p.mine)
             self.in_eta = _RightFactor(Phi, p.mine)
             self.out_xi = _RightFactor(Phi_inv, p.mine)
@@ -390,6 +389,16 @@ class _FastDiagonalisation:
                 z_xi[:, i], z_eta[:, i] = z[0::2], z[1::2]
         Z_xi, Z_eta = _allgather_columns(p, z_xi), _allgather_columns(p, z_eta)
         y.array[:] = _pack(self.out_xi(Z_xi), self.out_eta(Z_eta))
+
+
+def _pencil_modes(Ke: np.ndarray, M: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(w^2, Phi, Phi^-1) of the pencil (Ke, M), Phi^T M Phi = I: in closed form where both are
+    diagonal (modal coordinates), else by eigh."""
+    if _is_diagonal(Ke) and _is_diagonal(M):
+        m = np.diag(M)
+        return np.diag(Ke) / m, np.diag(1.0 / np.sqrt(m)), np.diag(np.sqrt(m))
+    w2, Phi = sla.eigh(Ke, M)
+    return w2, Phi, np.linalg.inv(Phi)
 
 
 def _mode_blocks(S: np.ndarray, Mm: np.ndarray, skew: np.ndarray, dt: float,
