@@ -132,6 +132,8 @@ class LinearScene(Scene):
                              "the springs of a column); use weights=identity or give A")
         require_spd("A", self._finite_matrix("A", self.A_matrix), inverted=True)
         B = self._finite_matrix("B", self.B_matrix)
+        if B is M or np.array_equal(B, M):  # (the energy weight: M, checked above)
+            return
         default = "M" if self.weighting() == "energy" else "M^2"
         require_spd("B", B, inverted=True, label=None if self.B is not None else (
             f"B = {default} = {show(B)} (H's velocity weight for weights={self.weighting()}, "
