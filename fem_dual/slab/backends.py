@@ -244,7 +244,8 @@ class KroneckerBackend(LinearSlabBackend):
 
     def __init__(self, scene, degree: int, cells: int, comm: MPI.Comm, prefix: str, petsc,
                  base: str, with_dual: bool):
-        from fem_dual.slab.kronecker import KroneckerProblem, KroneckerSampler, KroneckerSolver
+        from fem_dual.slab.kronecker import KroneckerProblem, KroneckerSampler
+        from fem_dual.slab.kronecker_solver import KroneckerSolver
 
         self.problem = KroneckerProblem(scene, degree, cells, comm, base)
         self.solver = KroneckerSolver(self.problem, prefix, petsc)

@@ -14,7 +14,8 @@ from fem_dual.continua.scenes import Cauchy2D
 from fem_dual.continua.spacetime import SpaceTimeSlab
 from fem_dual.continua.system import SpatialSystem
 from fem_dual.scenes.linear import GeneralLinear
-from fem_dual.slab.kronecker import KroneckerProblem, KroneckerSampler, KroneckerSolver
+from fem_dual.slab.kronecker import KroneckerProblem, KroneckerSampler
+from fem_dual.slab.kronecker_solver import KroneckerSolver
 
 DEGREE, CELLS = 4, 8
 U0 = ("0.01*sin(pi*x)*sin(pi*y)", "0.01*sin(pi*x)*sin(2*pi*y)")

@@ -163,12 +163,12 @@ def test_the_predictor_base_is_never_dropped_silently(capsys):
 def test_the_preconditioners_inverses_and_banded_factors_agree(monkeypatch):
     """Small problems keep the modes' block inverses, large ones banded Cholesky factors: the
     same operator; a slab whose time matrices leave float64 is refused with the frequency."""
-    from fem_dual.slab import kronecker
+    from fem_dual.slab import kronecker_solver
     scene = scaled_column(6, 2.0)
     x0, v0 = lowest_mode(scene), np.zeros(scene.n)
     outputs = []
-    for entries in (kronecker.INVERSE_ENTRIES, 0):
-        monkeypatch.setattr(kronecker, "INVERSE_ENTRIES", entries)
+    for entries in (kronecker_solver.INVERSE_ENTRIES, 0):
+        monkeypatch.setattr(kronecker_solver, "INVERSE_ENTRIES", entries)
         r = run(RunConfig.create(scene, T=1.0, x0=x0, v0=v0, slabs=2, cells=4, degree=3,
                                  assembly="kronecker", superpose="no", coordinates="physical",
                                  base="start"))
@@ -178,4 +178,4 @@ def test_the_preconditioners_inverses_and_banded_factors_agree(monkeypatch):
     assert outputs[0][2] == outputs[1][2]
     S = np.eye(2)
     with pytest.raises(SolveError, match=r"length 1e\+300 overflows float64 .*frequency 1e\+150"):
-        kronecker._mode_blocks(S, S, 0 * S, 1e300, np.array([1e-300, 1e300]))
+        kronecker_solver._mode_blocks(S, S, 0 * S, 1e300, np.array([1e-300, 1e300]))
