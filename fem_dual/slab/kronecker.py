@@ -81,7 +81,11 @@ class KroneckerProblem:
         self.scene = scene
         self.c = _scene_products(scene)
         K, D, M = self.c["K"], self.c["D"], self.c["M"]
-        self.transposed = {"K": np.ascontiguousarray(K.T), "D": np.ascontiguousarray(D.T)}
+        # the quadratic form of H_d: Y K^T, Y D^T, Y A, Y B at the cost their structure allows
+        self.hamiltonian_factors = {"K": _RightFactor(K.T, slice(None)),
+                                    "D": _RightFactor(D.T, slice(None)),
+                                    "A": _RightFactor(self.c["A"], slice(None)),
+                                    "B": _RightFactor(self.c["B"], slice(None))}
         self._mass = None if np.array_equal(M, np.eye(self.n)) else sla.cho_factor(M)
         # right factors of the residual's products, for all columns and for this rank's own
         self._right = {name: (_RightFactor(value.T, slice(None)), _RightFactor(value.T, self.mine))
@@ -212,7 +216,7 @@ class _RightFactor:
     def __call__(self, Y: np.ndarray) -> np.ndarray:
         if self.diagonal:
             return Y[..., self.cols] * self.d
-        return Y @ self.C
+        return Y @ self.C if Y.ndim <= 2 else times_last(Y, self.C)  # (a stack: one BLAS call)
 
 
 class KroneckerSampler:
@@ -264,15 +268,16 @@ class KroneckerSampler:
         """VertexValues from the linear part (vertices, 4n), or of many slabs (slabs,
         vertices, 4n) with their base states (slabs, 1, n), with H_d = xi.v + eta.F(x)
         - eta.D v + H(x - xbar, v - vbar) (left zero without `hamiltonian`)."""
-        n, c = self.p.n, self.p.c
+        n, f = self.p.n, self.p.hamiltonian_factors
         x, v, xi, eta = (linear[..., k * n:(k + 1) * n] for k in range(4))
         if hamiltonian:
             dx, dv = x - xbar, v - vbar
-            ham = (np.einsum("...j,...j->...", xi, v)
-                   - np.einsum("...j,...j->...", eta, times_last(x, self.p.transposed["K"]))
-                   - np.einsum("...j,...j->...", eta, times_last(v, self.p.transposed["D"]))
-                   + 0.5 * np.einsum("...j,...j->...", dx, times_last(dx, c["A"]))
-                   + 0.5 * np.einsum("...j,...j->...", dv, times_last(dv, c["B"])))
+
+            def dot(a, factor, b):  # a . (b C) over the last axis (C zero: 0)
+                return 0.0 if factor.zero else np.einsum("...j,...j->...", a, factor(b))
+
+            ham = (np.einsum("...j,...j->...", xi, v) - dot(eta, f["K"], x) - dot(eta, f["D"], v)
+                   + 0.5 * dot(dx, f["A"], dx) + 0.5 * dot(dv, f["B"], dv))
         else:
             ham = np.zeros(linear.shape[:-1])
         values = VertexValues(s=self.s, x=x, v=v, hamiltonian=ham)
