@@ -9,9 +9,14 @@ import os
 # Under mpirun every rank is one process on one core: threaded BLAS would oversubscribe the
 # cores (two ranks x two threads on two cores made the 200-link column 1.4x slower). Only a
 # default, before numpy loads its BLAS; a user's own setting wins.
-if int(os.environ.get("OMPI_COMM_WORLD_SIZE", os.environ.get("PMI_SIZE", "1"))) > 1:
+_size = os.environ.get("OMPI_COMM_WORLD_SIZE", os.environ.get("PMI_SIZE", "1")).strip()
+if _size.isdigit() and int(_size) > 1:  # (a value that is not a number: no launcher's)
     for _name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(_name, "1")
+# An empty XDG_CACHE_HOME means the default, ~/.cache (the XDG base directory specification);
+# DOLFINx would put FFCx's cache into the working directory instead.
+if os.environ.get("XDG_CACHE_HOME", None) == "":
+    del os.environ["XDG_CACHE_HOME"]
 
 from fem_dual.errors import InputError, SolveError  # noqa: E402 -- after the BLAS default
 

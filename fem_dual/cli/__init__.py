@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import json
 import os
+import re
+import stat
 import signal
 import sys
 from typing import TYPE_CHECKING, Dict, Optional, Sequence
@@ -99,6 +101,7 @@ _LAUNCHED = ("OMPI_COMM_WORLD_SIZE", "PMIX_RANK", "PMI_RANK", "PMI_SIZE", "SLURM
 # Open MPI's parameter files: the system's (Debian's path), the user's, and any named by
 # OMPI_MCA_mca_base_param_files
 _MCA_FILES = ("/etc/openmpi/openmpi-mca-params.conf", "~/.openmpi/mca-params.conf")
+MCA_FILE_BYTES = 1 << 20  # read of a parameter file, at most
 
 
 def _singleton_mpi_defaults() -> None:
@@ -109,8 +112,11 @@ def _singleton_mpi_defaults() -> None:
     keep Open MPI's own choice."""
     if any(name in os.environ for name in _LAUNCHED) or "OMPI_MCA_pml" in os.environ:
         return
-    files = list(_MCA_FILES) + os.environ.get("OMPI_MCA_mca_base_param_files", "").split(":")
-    for value in (_mca_value(name, "pml") for name in files if name):
+    named = os.environ.get("OMPI_MCA_mca_base_param_files")
+    # Open MPI reads the files it is given (a comma-separated list) instead of its defaults;
+    # a ':' is split too: reading one file more can only leave Open MPI's choice in place
+    files = _MCA_FILES if named is None else re.split("[,:]", named)
+    for value in (_mca_value(name.strip(), "pml") for name in files if name.strip()):
         if value is not None and (not value.startswith("^")
                                   or "ob1" in value[1:].replace(" ", "").split(",")):
             return
@@ -119,10 +125,14 @@ def _singleton_mpi_defaults() -> None:
 
 def _mca_value(path: str, key: str) -> Optional[str]:
     """The value an Open MPI parameter file gives `key` ("key = value" lines, # comments);
-    None where the file or the key is not there."""
+    None where the file or the key is not there. Only a regular file is read, its first
+    MCA_FILE_BYTES (a FIFO or a device is not waited on)."""
+    path = os.path.expanduser(path)
     try:
-        with open(os.path.expanduser(path), encoding="utf-8", errors="replace") as text:
-            lines = text.readlines()
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            return None
+        with open(path, encoding="utf-8", errors="replace") as text:
+            lines = text.read(MCA_FILE_BYTES).splitlines()
     except OSError:
         return None
     value = None

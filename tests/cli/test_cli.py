@@ -267,6 +267,31 @@ def test_a_process_without_a_launcher_skips_mpis_pml_probe_and_a_launched_one_ke
     other = tmp_path / "other.conf"
     other.write_text("pml = cm\n")
     assert chosen("", OMPI_MCA_mca_base_param_files=str(other)) is None
+    # Open MPI's list is comma-separated, and replaces its default files
+    assert chosen("", OMPI_MCA_mca_base_param_files=f"{tmp_path / 'none'},{other}") is None
+    assert chosen("pml = ucx\n", OMPI_MCA_mca_base_param_files=str(tmp_path / "none")) == "ob1"
+    # what is not a regular file is not read (a FIFO would block, a device never end)
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    assert chosen("", OMPI_MCA_mca_base_param_files=f"{fifo},/dev/zero") == "ob1"
+
+
+@pytest.mark.serial
+def test_odd_launcher_and_cache_variables_are_not_a_traceback(tmp_path):
+    """A launcher variable that is not a number is no launcher's; an empty XDG_CACHE_HOME is the
+    default cache (~/.cache), not a `fenics` directory in the working directory."""
+    env = dict(os.environ, OMPI_COMM_WORLD_SIZE="", PMI_SIZE="two", XDG_CACHE_HOME="")
+    for name in ("PMIX_RANK", "PMI_RANK", "SLURM_PROCID"):
+        env.pop(name, None)
+    fem_dual = str(Path(sys.executable).parent / "fem-dual")
+    done = subprocess.run([fem_dual, "--version"], capture_output=True, text=True, env=env,
+                          cwd=tmp_path, timeout=60)
+    assert done.returncode == 0 and not done.stderr, done.stderr
+    env = dict(os.environ, XDG_CACHE_HOME="")
+    done = subprocess.run([fem_dual, "run", "ziegler", "--T", "1", "--json"], capture_output=True,
+                          text=True, env=env, cwd=tmp_path, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert not (tmp_path / "fenics").exists()
 
 
 @pytest.mark.serial
