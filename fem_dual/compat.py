@@ -12,6 +12,10 @@ import ufl
 from dolfinx import cpp as _cpp
 from dolfinx import fem
 
+from fem_dual import jit_lock
+
+jit_lock.install()  # a compilation that a killed process left behind is redone, not waited for
+
 __all__ = ["function_space", "quiet_jit_logging", "CellPointEvaluator", "CompiledExpression",
            "compile_expression", "compile_form",
            "vector_space", "vector_space_dg1", "constant", "destroy_petsc",

@@ -306,3 +306,39 @@ def test_a_damaged_jit_cache_is_one_line_not_a_traceback(monkeypatch, capsys):
     err = capsys.readouterr().err
     assert status == 3 and "Traceback" not in err and len(err.strip().splitlines()) == 1
     assert "FFCx's cache of compiled forms" in err and "remove that directory" in err
+
+
+def test_a_compilation_left_unfinished_is_compiled_again_not_waited_for(tmp_path):
+    """A process killed while it compiled leaves a module's C file without FFCx's `.c.cached`
+    marker; the next run takes the module's lock (no fem-dual process compiles it) and compiles
+    it again, where FFCx alone waited its whole timeout (600 s). While another process holds
+    the lock, the module is left to it."""
+    from fem_dual import jit_lock
+
+    env = dict(os.environ, XDG_CACHE_HOME=str(tmp_path / "cache"))
+    fem_dual = str(Path(sys.executable).parent / "fem-dual")
+    command = [fem_dual, "run", "ziegler", "--T", "1", "--json"]
+    first = subprocess.run(command, capture_output=True, text=True, env=env, timeout=600)
+    assert first.returncode == 0, first.stderr
+    cache = tmp_path / "cache" / "fenics"
+    markers = sorted(cache.glob("libffcx_expressions_*.c.cached"))
+    assert markers
+    markers[0].unlink()  # as a compilation killed before its end leaves it
+    again = subprocess.run(command, capture_output=True, text=True, env=env, timeout=120)
+    assert again.returncode == 0, again.stderr
+    assert markers[0].exists()  # compiled again
+    assert json.loads(again.stdout)["final"] == json.loads(first.stdout)["final"]
+    # a lock held elsewhere: this process does not take it
+    name = markers[0].name[:-len(".c.cached")]
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import fcntl, sys, time; f = open(sys.argv[1], 'a'); "
+        "fcntl.flock(f, fcntl.LOCK_EX); print('held', flush=True); time.sleep(30)"),
+        str(cache / f"{name}.lock")], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        assert not jit_lock._take(cache, name)
+    finally:
+        holder.kill()
+        holder.wait()
+    assert jit_lock._take(cache, name)  # free again
+    jit_lock._release(name)
