@@ -280,7 +280,7 @@ def test_a_process_without_a_launcher_skips_mpis_pml_probe_and_a_launched_one_ke
 def test_odd_launcher_and_cache_variables_are_not_a_traceback(tmp_path):
     """A launcher variable that is not a number is no launcher's; an empty XDG_CACHE_HOME is the
     default cache (~/.cache), not a `fenics` directory in the working directory."""
-    env = dict(os.environ, OMPI_COMM_WORLD_SIZE="", PMI_SIZE="two", XDG_CACHE_HOME="")
+    env = dict(os.environ, OMPI_COMM_WORLD_SIZE="\u00b2", PMI_SIZE="two", XDG_CACHE_HOME="")
     for name in ("PMIX_RANK", "PMI_RANK", "SLURM_PROCID"):
         env.pop(name, None)
     fem_dual = str(Path(sys.executable).parent / "fem-dual")
@@ -342,3 +342,24 @@ def test_a_compilation_left_unfinished_is_compiled_again_not_waited_for(tmp_path
         holder.wait()
     assert jit_lock._take(cache, name)  # free again
     jit_lock._release(name)
+    # a run already waiting when the compiling process ends without its marker compiles the
+    # module itself once the lock is free
+    markers[0].unlink()
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import fcntl, sys, time; f = open(sys.argv[1], 'a'); "
+        "fcntl.flock(f, fcntl.LOCK_EX); print('held', flush=True); time.sleep(3)"),
+        str(cache / f"{name}.lock")], stdout=subprocess.PIPE, text=True)
+    assert holder.stdout.readline().strip() == "held"
+    waited = subprocess.run(command, capture_output=True, text=True, env=env, timeout=120)
+    holder.wait()
+    assert waited.returncode == 0 and markers[0].exists(), waited.stderr
+    # a marker without its C file (two compilations collided: FFCx then failed on every run)
+    # is compiled again; a FIFO at a lock's path is no lock (FFCx's own protocol), not a hang
+    element = sorted(cache.glob("libffcx_elements_*.c.cached"))[0].name[:-len(".c.cached")]
+    (cache / f"{element}.c").unlink()
+    repaired = subprocess.run(command, capture_output=True, text=True, env=env, timeout=120)
+    assert repaired.returncode == 0 and (cache / f"{element}.c").exists(), repaired.stderr
+    (cache / f"{element}.lock").unlink()
+    os.mkfifo(cache / f"{element}.lock")
+    fifo = subprocess.run(command, capture_output=True, text=True, env=env, timeout=120)
+    assert fifo.returncode == 0, fifo.stderr
