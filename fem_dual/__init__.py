@@ -10,7 +10,7 @@ import os
 # cores (two ranks x two threads on two cores made the 200-link column 1.4x slower). Only a
 # default, before numpy loads its BLAS; a user's own setting wins.
 _size = os.environ.get("OMPI_COMM_WORLD_SIZE", os.environ.get("PMI_SIZE", "1")).strip()
-if _size.isascii() and _size.isdigit() and int(_size) > 1:  # (a value that is not a number: no launcher's)
+if _size.isascii() and _size.isdigit() and int(_size) > 1:  # (not a number: no launcher)
     for _name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(_name, "1")
 # An empty XDG_CACHE_HOME means the default, ~/.cache (the XDG base directory specification);

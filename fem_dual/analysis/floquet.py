@@ -14,8 +14,8 @@ from mpi4py import MPI
 from fem_dual import faults
 from fem_dual.errors import SolveError
 
-__all__ = ["CHECK_TOL", "SlabFlow", "monodromy", "nontrivial", "multiplier_distance", "stop_if_asked",
-           "floquet_multipliers", "vector_field", "MULTIPLIER_TOL", "MAX_FOLD"]
+__all__ = ["CHECK_TOL", "SlabFlow", "monodromy", "nontrivial", "multiplier_distance",
+           "stop_if_asked", "floquet_multipliers", "vector_field", "MULTIPLIER_TOL", "MAX_FOLD"]
 
 MAX_FOLD = 12  # an orbit closing after T/k is a k-fold cover, checked for k up to this or the
 # orbit's nodes (cells x degree), whichever is larger: no mesh resolves more turns than nodes

@@ -57,7 +57,7 @@ from __future__ import annotations
 
 import time
 import weakref
-from typing import Dict, List, Optional, Sequence
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import scipy.linalg as sla
@@ -246,9 +246,7 @@ class TimeModePreconditioner:
         self.slab = weakref.proxy(slab)
         self.coupling, self.kind = coupling, shifted
         self.prefix = slab.prefix + "shifted_"
-        T = slab.time_free
-        self.sigma, self.V = sla.eigh(T["S"].toarray(), T["Mm"].toarray())
-        self.Q = self.V.T @ (T["G"] - T["C"]).toarray() @ self.V
+        self.sigma, self.V, self.Q = _time_modes(slab.time_free)
         self.nullspace, self._null_vecs = None, []
         if nullspace_vectors is not None and len(nullspace_vectors):
             for v in _orthonormal(slab.comm, nullspace_vectors):
@@ -330,15 +328,29 @@ class TimeModePreconditioner:
         s = self.slab
         R = x.array_r.reshape(s.nf, 2, s.n_local)
         r_hat = _times(self.V.T, R)  # both fields at once
-        r_x, r_e = r_hat[:, 0], r_hat[:, 1]
-        if self.coupling == "jacobi":
-            z_x, y_e = self.xi_block(r_x), self.eta_block(r_e)
-        else:
-            z_e = self.eta_block(r_e)
-            z_x = self.xi_block(r_x - _times(self.Q, z_e))
-            y_e = self.eta_block(r_e - _times(self.Q.T, z_x))
+        z_x, y_e = _sweep(self.coupling, r_hat[:, 0], r_hat[:, 1], self.xi_block,
+                          self.eta_block, self.Q)
         out = y.array.reshape(s.nf, 2, s.n_local)
         out[:, 0], out[:, 1] = _times(self.V, z_x), _times(self.V, y_e)
+
+
+def _time_modes(T) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(sigma, V, Q) of the free time matrices T: S V = Mm V diag(sigma), V^T Mm V = I, and the
+    coupling Q = V^T (G - C) V."""
+    sigma, V = sla.eigh(T["S"].toarray(), T["Mm"].toarray())
+    return sigma, V, V.T @ (T["G"] - T["C"]).toarray() @ V
+
+
+def _sweep(coupling: str, r_x: np.ndarray, r_e: np.ndarray, xi_block, eta_block,
+           Q: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """(y_x, y_e): the preconditioner in the time-mode basis applied to (r_x, r_e) (time rows
+    first), with the diagonal blocks `xi_block`, `eta_block`: "jacobi" drops the coupling Q,
+    "sgs" is one symmetric block Gauss-Seidel sweep, eta first (the module docstring)."""
+    if coupling == "jacobi":
+        return xi_block(r_x), eta_block(r_e)
+    z_e = eta_block(r_e)
+    z_x = xi_block(r_x - _times(Q, z_e))
+    return z_x, eta_block(r_e - _times(Q.T, z_x))
 
 
 def _times(A: np.ndarray, R: np.ndarray) -> np.ndarray:
@@ -362,27 +374,17 @@ def model_condition(degree: int, cells: int, taus: Sequence[float],
         raise ValueError(f"coupling={coupling!r}: expected 'sgs' or 'jacobi'")
     T = TimeMatrices(int(degree), int(cells))
     free = T.free
-    S, Mm, W = (T.glob[k][free][:, free].toarray() for k in ("S", "Mm", "G"))
-    W = W - T.glob["C"][free][:, free].toarray()
-    sigma, V = sla.eigh(S, Mm)
-    Q = V.T @ W @ V
+    sigma, _, Q = _time_modes({k: T.glob[k][free][:, free] for k in ("S", "Mm", "G", "C")})
     nf = len(sigma)
+    unit = np.eye(2 * nf)  # the preconditioner applied to the unit vectors, as columns
     grid = np.geomspace(1e-2, max(taus), 400)
     lo, hi = np.empty(len(grid)), np.empty(len(grid))
     for i, tau in enumerate(grid):
         w2 = tau * tau
         d_x, d_e = sigma / w2 + 1.0, w2 + sigma  # the diagonal blocks (time modes)
         H = np.block([[np.diag(d_x), Q], [Q.T, np.diag(d_e)]])
-        B = np.zeros((2 * nf, 2 * nf))  # the preconditioner applied to the unit vectors
-        for j in range(2 * nf):
-            r_x, r_e = (np.eye(2 * nf)[j][:nf], np.eye(2 * nf)[j][nf:])
-            if coupling == "jacobi":
-                z_x, y_e = r_x / d_x, r_e / d_e
-            else:
-                z_e = r_e / d_e
-                z_x = (r_x - Q @ z_e) / d_x
-                y_e = (r_e - Q.T @ z_x) / d_e
-            B[:, j] = np.concatenate([z_x, y_e])
+        B = np.vstack(_sweep(coupling, unit[:nf], unit[nf:], lambda R: R / d_x[:, None],
+                             lambda R: R / d_e[:, None], Q))
         ev = np.linalg.eigvals(B @ H).real
         lo[i], hi[i] = ev.min(), ev.max()
     out = []

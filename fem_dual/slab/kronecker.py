@@ -80,16 +80,15 @@ class KroneckerProblem:
     def set_scene_constants(self, scene) -> None:
         self.scene = scene
         self.c = _scene_products(scene)
-        K, D, M = self.c["K"], self.c["D"], self.c["M"]
-        # the quadratic form of H_d: Y K^T, Y D^T, Y A, Y B at the cost their structure allows
-        self.hamiltonian_factors = {"K": _RightFactor(K.T, slice(None)),
-                                    "D": _RightFactor(D.T, slice(None)),
-                                    "A": _RightFactor(self.c["A"], slice(None)),
-                                    "B": _RightFactor(self.c["B"], slice(None))}
+        M = self.c["M"]
         self._mass = None if np.array_equal(M, np.eye(self.n)) else sla.cho_factor(M)
         # right factors of the residual's products, for all columns and for this rank's own
         self._right = {name: (_RightFactor(value.T, slice(None)), _RightFactor(value.T, self.mine))
                        for name, value in self.c.items()}
+        # the quadratic form of H_d: Y K^T, Y D^T, Y A, Y B at the cost their structure allows
+        self.hamiltonian_factors = {"K": self._right["K"][0], "D": self._right["D"][0],
+                                    "A": _RightFactor(self.c["A"], slice(None)),
+                                    "B": _RightFactor(self.c["B"], slice(None))}
         self._block_probes = None
 
     def block_probes(self) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:

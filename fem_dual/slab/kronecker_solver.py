@@ -5,7 +5,7 @@ the pencil (Ke, M))."""
 from __future__ import annotations
 
 import weakref
-from typing import Dict, Optional, Mapping, Tuple
+from typing import Dict, Mapping, Optional, Tuple
 
 import numpy as np
 import scipy.linalg as sla
