@@ -83,6 +83,10 @@ WRONG_BEFORE = [
     ("ziegler", {}, {"petsc": {"pc_type": "jacobi"}}),
     ("curl3d", {}, {"T": 8, "cells": 2, "degree": 4}),
     ("curl3d", {}, {"T": 8, "cells": 16, "degree": 2}),
+    # a slab whose Newton ends on another solution of its equations, 2.6e-2 off (the companion
+    # must not start from it)
+    ("curl3d", {}, {"T": 9.3, "slabs": 45, "cells": 8, "degree": 4}),
+    ("curl3d", {}, {"T": 9.3, "slabs": 45, "cells": 16, "degree": 4}),
 ]
 
 
