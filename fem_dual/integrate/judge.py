@@ -167,6 +167,8 @@ def volume_kept(sim: "Simulation", z: np.ndarray, t0: float, dt: float,
     M, D = sim.backend.mass_and_damping()
     defect = bcast(sim.comm, volume_defect(J, M, D, dt) if J is not None else None)
     if defect <= VOLUME_TOL:
+        if verdict.estimate is not None:  # (rank 0) the round-off it carries on: estimate.carry
+            verdict.estimate.tangent = J
         return verdict
     return Verdict("retry", None, f"the slab map does not keep phase-space volume as the motion "
                    f"does (det of its tangent off by {defect:.2g}): the cells do not follow a "

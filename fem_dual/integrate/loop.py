@@ -23,7 +23,7 @@ from fem_dual.errors import SolveError, one_line
 from fem_dual.integrate.chunks import batch_step
 from fem_dual.integrate.conditioning import data_floor
 from fem_dual.integrate.controller import SlabSchedule, schedule_for, step_factor
-from fem_dual.integrate.estimate import ErrorWeights, output_request
+from fem_dual.integrate.estimate import ErrorWeights, carried_floor, carry, output_request
 from fem_dual.integrate.judge import (GrowthBound, Verdict, check_resolution, judge, judged,
                                       volume_kept)
 from fem_dual.integrate.kinks import PREDICTION_STEPS, kink_time, predicted_kink_time
@@ -293,6 +293,10 @@ class _Run:
         def add() -> Tuple[np.ndarray, np.ndarray]:
             """The sinks take the slab; the next slab's start state and its error."""
             weights.record(vals.x, vals.v)
+            if not self.sim.scene.linear:  # (linear scenes: the data floor)
+                state.roundoff = carry(state.roundoff, verdict.estimate)
+                verdict.estimate.carried = carried_floor(state.roundoff)
+                verdict.estimate.tangent = None  # (not kept with the slab)
             slab = AcceptedSlab(k, t0, dt, vals, verdict.estimate, schedule.state,
                                 (weights.scale_x, weights.scale_v))
             for sink in self.sinks:

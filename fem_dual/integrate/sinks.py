@@ -61,6 +61,7 @@ class SlabBatch:
     floor: np.ndarray  # (slabs, 2)
     schedule: np.ndarray  # (slabs, SlabSchedule.STATE_SIZE)
     scales: np.ndarray  # (slabs, 2)
+    carried: Optional[np.ndarray] = None  # (slabs, 2): grown floors (estimate.carried_floor)
 
     def __len__(self) -> int:
         return len(self.t0)
@@ -71,20 +72,23 @@ class SlabBatch:
         return SlabBatch(self.first, self.t0[cut], self.dt[cut],
                          self.values.apply(lambda a: a[cut]), self.local[cut],
                          self.glob[cut], self.local_weighted[cut], self.global_weighted[cut],
-                         self.floor[cut], self.schedule[cut], self.scales[cut])
+                         self.floor[cut], self.schedule[cut], self.scales[cut],
+                         None if self.carried is None else self.carried[cut])
 
     @classmethod
     def of(cls, slab: AcceptedSlab) -> "SlabBatch":
         e, one = slab.estimate, slab.values.apply(lambda a: a[None])
         return cls(slab.index, np.array([slab.t0]), np.array([slab.dt]), one, e.local[None],
                    e.glob[None], np.array([e.local_weighted]), np.array([e.global_weighted]),
-                   np.array([e.floor]), np.array([slab.schedule]), np.array([slab.scales]))
+                   np.array([e.floor]), np.array([slab.schedule]), np.array([slab.scales]),
+                   np.array([e.carried]))
 
     def slab(self, j: int) -> AcceptedSlab:
         values = self.values.apply(lambda a: a[j])
         estimate = SlabEstimate(float(self.t0[j]), float(self.dt[j]), self.local[j],
                                 self.glob[j], float(self.local_weighted[j]),
-                                float(self.global_weighted[j]), tuple(self.floor[j]))
+                                float(self.global_weighted[j]), tuple(self.floor[j]),
+                                (0.0, 0.0) if self.carried is None else tuple(self.carried[j]))
         return AcceptedSlab(self.first + j, float(self.t0[j]), float(self.dt[j]), values,
                             estimate, tuple(int(a) for a in self.schedule[j]),
                             tuple(self.scales[j]))
@@ -97,7 +101,8 @@ class SlabBatch:
         return np.maximum(g, self.accumulated_floor()[:, None, :])
 
     def accumulated_floor(self) -> np.ndarray:
-        return accumulated_floor(self.floor, self.first)
+        floor = accumulated_floor(self.floor, self.first)
+        return floor if self.carried is None else np.maximum(floor, self.carried)
 
 
 _TINY = np.finfo(float).tiny

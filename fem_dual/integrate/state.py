@@ -30,6 +30,9 @@ class LoopState:
         # what the zero base dropped so far (amplitudes per component): part of the global
         # error for good, carried beside d (no slab map carries it)
         self.dropped = np.zeros_like(self.z)
+        # the covariance of the round-off the slabs left in the state (estimate.carry; rank 0,
+        # nonlinear scenes: a resumed run starts it again from zero)
+        self.roundoff = np.zeros((len(self.z), len(self.z)))
         self.lengths: List[float] = []
         self.batched = 0  # slabs taken in chunks from their slab maps (fem_dual.integrate.chunks)
         # slabs of the next chunk (before the limits of fem_dual.integrate.chunks): fixed slabs have their
