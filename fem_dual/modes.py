@@ -13,7 +13,7 @@ from typing import List, Optional, Tuple
 import numpy as np
 import scipy.linalg as sla
 
-__all__ = ["real_modes", "finite_real_modes", "refined_blocks", "compute_real_modes",
+__all__ = ["real_modes", "condition_1", "finite_real_modes", "refined_blocks", "compute_real_modes",
            "block_slices", "block_motion", "cancelling", "coupling", "decoupled", "CANCELLATION", "GROUP_COSINE", "MAX_BLOCK_SCALING",
            "CHOLESKY_COND"]
 
@@ -132,6 +132,10 @@ def compute_real_modes(M: np.ndarray, K: np.ndarray) -> Tuple[np.ndarray, ...]:
     R = sla.cholesky(M)  # M = R^T R: the M-inner product is the Euclidean one of R u
     lam, vecs = _pencil_eig(K, M, R)
     order = np.argsort(np.abs(lam), kind="stable")
+    # R u of every real eigenvector in one product, and its M-norm |R u| (one matrix-vector
+    # product and an einsum per mode took 0.19 s of the 450 modes of a square)
+    RV = R @ vecs.real
+    norms = np.linalg.norm(RV, axis=0)
     blocks: list = []
     R_last = None  # R @ blocks[-1]
     for k in order:
@@ -139,11 +143,11 @@ def compute_real_modes(M: np.ndarray, K: np.ndarray) -> Tuple[np.ndarray, ...]:
             continue  # its conjugate brings the pair
         u = vecs[:, k]
         if lam[k].imag == 0:
-            block = u.real[:, None] / np.sqrt(np.einsum("ij,ik,kj->j", u.real[:, None], M,
-                                                        u.real[:, None]))
+            block = u.real[:, None] / norms[k]
+            R_block = RV[:, k:k + 1] / norms[k]
         else:
             block = orthonormal(R, np.stack([u.real, u.imag], axis=1))
-        R_block = R @ block
+            R_block = R @ block
         if blocks and _norm2(R_last.T @ R_block) > GROUP_COSINE:
             block = orthonormal(R, np.hstack([blocks.pop(), block]))
             R_block = R @ block
@@ -225,6 +229,17 @@ def balanced(Q: np.ndarray, K: np.ndarray) -> np.ndarray:
             break
     d = np.maximum(d / d.max(), 1.0 / MAX_BLOCK_SCALING)
     return Q * d
+
+
+def condition_1(A: np.ndarray) -> float:
+    """LAPACK's estimate of the 1-norm condition number of a square A (an LU and a few solves:
+    within a factor n of cond_2, at a tenth of an SVD's cost; inf where A is singular)."""
+    getrf, gecon = sla.get_lapack_funcs(("getrf", "gecon"), (A,))
+    lu, _, info = getrf(A)
+    if info != 0:
+        return float("inf")
+    rcond, info = gecon(lu, float(np.abs(A).sum(axis=0).max()), norm="1")
+    return float("inf") if info != 0 or not rcond > 0 else 1.0 / float(rcond)
 
 
 def orthonormal(R: np.ndarray, columns: np.ndarray) -> np.ndarray:

@@ -188,7 +188,7 @@ class LinearScene(Scene):
         eigenvectors in its columns."""
         if np.any(self.damping_matrix()):
             return None
-        from fem_dual.modes import block_slices, finite_real_modes
+        from fem_dual.modes import block_slices, condition_1, finite_real_modes
 
         M = self.mass_matrix()
         modes = finite_real_modes(M, self.stiffness_matrix())
@@ -196,11 +196,14 @@ class LinearScene(Scene):
             return None
         U, Kr = modes[:2]
         mu, W = np.zeros(len(M), complex), np.zeros(M.shape, complex)
-        for b in block_slices(Kr):
+        slices = block_slices(Kr)
+        single = np.array([b.start for b in slices if b.stop - b.start == 1], dtype=int)
+        mu[single], W[:, single] = Kr[single, single], U[:, single]  # (a one-mode block's eig)
+        for b in (b for b in slices if b.stop - b.start > 1):
             mu[b], Y = np.linalg.eig(Kr[b, b])
             W[:, b] = U[:, b] @ Y
         modes = FirstOrderModes.of(mu, W)
-        return modes if modes is not None and np.linalg.cond(W) <= 1e10 else None
+        return modes if modes is not None and condition_1(W) <= 1e10 else None
 
     def modal_coefficients(self, x0: np.ndarray, v0: np.ndarray) -> np.ndarray:
         """c with V c = (x0, v0) for the eigenvectors V of `spectrum`."""
