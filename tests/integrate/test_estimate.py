@@ -87,6 +87,9 @@ WRONG_BEFORE = [
     # must not start from it)
     ("curl3d", {}, {"T": 9.3, "slabs": 45, "cells": 8, "degree": 4}),
     ("curl3d", {}, {"T": 9.3, "slabs": 45, "cells": 16, "degree": 4}),
+    # ... and answers whose companions, solved from zero, crept to the same other solution
+    ("curl3d", {}, {"T": 9.3, "slabs": 15, "cells": 10, "degree": 4}),
+    ("curl3d", {}, {"T": 9.096, "slabs": 14, "cells": 9, "degree": 4}),
     # perturbations outgrow the motion (the tangent 9e6-fold): round-off that sqrt(k) floors
     # of the scale do not cover
     ("curl3d", {}, {"T": 9.3, "slabs": 30, "cells": 16, "degree": 3}),
