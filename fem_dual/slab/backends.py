@@ -122,6 +122,16 @@ class _NewtonParts(_ProblemParts, NonlinearSlabBackend):
         history = self.solver.histories[-1] if self.solver.histories else []
         return len(history) > 1 and history[1] > 0.5 * history[0]
 
+    def _no_start(self, warm: float, first: float) -> bool:
+        """Whether a warm start's residual `warm` is no nearer than the zero state's `first`
+        (WARM_REFUSE), above the residual's round-off (where residuals tell nothing: an
+        equilibrium's zero state is its solution)."""
+        if warm < WARM_REFUSE * first:
+            return False
+        from fem_dual.slab.snes import RESIDUAL_ROUNDOFF, residual_size  # (the Newton's own)
+
+        return not warm < RESIDUAL_ROUNDOFF * residual_size(self.problem)
+
     def first_residual(self) -> Optional[float]:
         """The residual norm of the zero dual state in the last solve (None: none recorded)."""
         first = self.solver.histories[-1][:1]
@@ -133,18 +143,13 @@ class _NewtonParts(_ProblemParts, NonlinearSlabBackend):
         if first is not None and first > 0:  # (no history: options without a residual norm)
             self.problem.take_dual_state(start.problem)
             self.solver.solve(warm=first)
-            history = self.solver.histories[-1] if self.solver.histories else []
-            # (residuals at round-off tell nothing: an equilibrium's zero state is its solution)
-            from fem_dual.slab.snes import RESIDUAL_ROUNDOFF, residual_size  # (the Newton's own)
-
-            floor = RESIDUAL_ROUNDOFF * residual_size(self.problem)
-            if history and not history[0] < max(WARM_REFUSE * first, floor) and \
-                    start.damped_start():
+            warm = self.first_residual()  # (the warm start's: the first of this solve)
+            if warm is not None and self._no_start(warm, first) and start.damped_start():
                 raise SolveError(f"the answer's solution is no start for its degree p + 1 "
-                                 f"companion (residual {history[0]:.3g} there, "
-                                 f"{first:.3g} from zero): it converged to another solution "
-                                 "of the slab's equations")
-            if history and not history[0] <= WARM_TRUST * first:
+                                 f"companion (residual {warm:.3g} there, {first:.3g} from "
+                                 "zero): it converged to another solution of the slab's "
+                                 "equations")
+            if warm is not None and not warm <= WARM_TRUST * first:
                 self.solver.solve()
         else:
             self.solver.solve()
