@@ -133,7 +133,6 @@ class SlabEstimate:
     global_weighted: float
     floor: Tuple[float, float] = (0.0, 0.0)  # round-off floor of x and v errors (one slab's)
     carried: Tuple[float, float] = (0.0, 0.0)  # the floors of the slabs so far, grown (`carry`)
-    tangent: Optional[np.ndarray] = None  # (2n, 2n) d z_end / d z0 where it was computed
 
 
 # the share of a slab's floor (ROUNDOFF_REL of the scale) that `carry` grows: a slab's own
@@ -143,17 +142,18 @@ class SlabEstimate:
 CARRIED_SHARE = 0.1
 
 
-def carry(covariance: np.ndarray, estimate: SlabEstimate) -> np.ndarray:
+def carry(covariance: np.ndarray, estimate: SlabEstimate,
+          J: Optional[np.ndarray] = None) -> np.ndarray:
     """(2n, 2n): the covariance of the round-off the slabs so far left in the state at this
-    slab's end: the previous one carried by the slab map's tangent J (J C J^T; the identity
-    where J was not computed), plus this slab's floor in every component, independently. The
+    slab's end: the previous one carried by the slab map's tangent J (2n, 2n: d z_end / d z0;
+    J C J^T, the identity where J was not computed), plus this slab's floor in every component,
+    independently. The
     companion's difference does not see round-off, and sqrt(k) floors (`accumulated_floor`)
     do not follow a motion whose perturbations grow faster than it does: curl3d T = 9.3 grows
     its tangent 9e6-fold, |v| to 2.7e3, and answers of every degree ended 5e-8 to 1.4e-7 off
     (DOP853 at 1e-13 and at 2.3e-14 agree to 1.1e-9), 2.8e-11 of the scale against sqrt(k)
     floors of 7.5e-12."""
     n = len(covariance) // 2
-    J = estimate.tangent
     carried = covariance if J is None else J @ covariance @ J.T
     floor = np.repeat(np.asarray(estimate.floor, dtype=float), n) * CARRIED_SHARE
     return carried + np.diag(floor ** 2)

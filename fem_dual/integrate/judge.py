@@ -54,13 +54,15 @@ class Verdict(NamedTuple):
     cannot vouch for its answer) or "error" (the run ends); `err` the weighted local error per
     unit of time (the controller's, None where the slab was not estimated), `reason` why not
     accepted, `estimate` the slab's error estimate (rank 0 only), `solver` whether the slab's
-    solve itself failed."""
+    solve itself failed, `tangent` the slab map's tangent where the volume check computed it
+    (rank 0 only: the round-off it carries on, fem_dual.integrate.estimate.carry)."""
 
     action: str
     err: Optional[float]
     reason: str
     estimate: Optional[SlabEstimate] = None
     solver: bool = False
+    tangent: Optional[np.ndarray] = None
 
 
 def check_resolution(rate: Optional[float], dt: float, cells: int, degree: int) -> None:
@@ -167,9 +169,7 @@ def volume_kept(sim: "Simulation", z: np.ndarray, t0: float, dt: float,
     M, D = sim.backend.mass_and_damping()
     defect = bcast(sim.comm, volume_defect(J, M, D, dt) if J is not None else None)
     if defect <= VOLUME_TOL:
-        if verdict.estimate is not None:  # (rank 0) the round-off it carries on: estimate.carry
-            verdict.estimate.tangent = J
-        return verdict
+        return verdict._replace(tangent=J)
     return Verdict("retry", None, f"the slab map does not keep phase-space volume as the motion "
                    f"does (det of its tangent off by {defect:.2g}): the cells do not follow a "
                    "fast or unstable part of the motion, which the estimate cannot see")

@@ -108,6 +108,7 @@ class _Run:
             self.comm, lambda: XdmfSink(config, scene.name, restart, self.floor))
         self.bar = ProgressSink(config.T) if (progress and root) else None
         self.sinks = [s for s in (self.acc, self.xdmf, self.bar) if s is not None]
+        self.flow_check = sim.flow_check if root else None  # (its set-up is compile time)
         self.timings = {"compile_s": sim.charged_setup(), "setup_s": setup_s, "solve_s": 0.0,
                         "estimate_s": 0.0, "recovery_s": 0.0, "output_s": 0.0}
         start_rate = _start_rate(scene, config.x0, config.v0)
@@ -206,11 +207,26 @@ class _Run:
                 config.T, output_request(config), None if lost is None else self.state.dropped))
             if verdict.action == "accept" and not sim.scene.linear:
                 verdict = volume_kept(sim, z, t0, dt, vals, verdict)
+            if verdict.action == "accept" and not sim.scene.linear:
+                verdict = self._follows_flow(z, dt, vals, verdict)
         except SolveError as exc:
             verdict = Verdict("retry", None, str(exc), solver=True)
         self.timings["solve_s"] += (time.perf_counter() - tic
                                     - (self.timings["estimate_s"] - estimate_before))
         return vals, verdict
+
+    def _follows_flow(self, z: np.ndarray, dt: float, vals: Optional[VertexValues],
+                      verdict: Verdict) -> Verdict:
+        """The verdict on an accepted nonlinear slab: still that where its answer is as near
+        classical Runge-Kutta from the same start as its estimate says, or where RK4 cannot
+        tell (fem_dual.integrate.flow_check); else "retry". Collective."""
+        why = None
+        if self.flow_check is not None and verdict.estimate is not None:
+            tic = time.perf_counter()
+            why = self.flow_check.excess(z, dt, vals, verdict.estimate)
+            self.timings["estimate_s"] += time.perf_counter() - tic
+        why = bcast(self.comm, why)
+        return verdict if why is None else Verdict("retry", None, why)
 
     def _cut_at_kink(self, vals: Optional[VertexValues], t0: float,
                      dt: float) -> Optional[Verdict]:
@@ -296,9 +312,8 @@ class _Run:
             """The sinks take the slab; the next slab's start state and its error."""
             weights.record(vals.x, vals.v)
             if not self.sim.scene.linear:  # (linear scenes: the data floor)
-                state.roundoff = carry(state.roundoff, verdict.estimate)
+                state.roundoff = carry(state.roundoff, verdict.estimate, verdict.tangent)
                 verdict.estimate.carried = carried_floor(state.roundoff)
-                verdict.estimate.tangent = None  # (not kept with the slab)
             slab = AcceptedSlab(k, t0, dt, vals, verdict.estimate, schedule.state,
                                 (weights.scale_x, weights.scale_v))
             for sink in self.sinks:

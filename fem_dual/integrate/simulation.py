@@ -8,7 +8,7 @@ protocol (fem_dual.slab.backend); the loop over slabs is fem_dual.integrate.loop
 from __future__ import annotations
 
 import time
-from typing import Dict, Optional, Tuple
+from typing import TYPE_CHECKING, Dict, Optional, Tuple
 
 import numpy as np
 from mpi4py import MPI
@@ -24,6 +24,9 @@ from fem_dual.slab.backends import make_backend
 from fem_dual.slab.base_state import FlowPredictor
 from fem_dual.slab.modal import RESOLVED_TURN, ModalBasis
 from fem_dual.slab.values import VertexValues
+
+if TYPE_CHECKING:
+    from fem_dual.integrate.flow_check import FlowCheck
 
 __all__ = ["Simulation"]
 
@@ -87,6 +90,7 @@ class Simulation:
         self.setup_s = time.perf_counter() - tic
         self._fresh = True
         self._companion: Optional["Simulation"] = None
+        self._flow_check: Optional["FlowCheck"] = None
         # whether a partner's solved dual state is a start for ours (solve_slab): not where our
         # base state is a run of our own (the companion's rk4, with twice the steps)
         self._warm = not isinstance(shared_predictor, FlowPredictor)
@@ -164,9 +168,28 @@ class Simulation:
             self.setup_s += self._companion.setup_s
         return self._companion
 
+    @property
+    def flow_check(self) -> Optional["FlowCheck"]:
+        """The RK4 runs a nonlinear slab's answer is compared with (fem_dual.integrate.
+        flow_check; built on first use, sharing the base's compiled force, then kept), None for
+        a linear scene or the predictor base. Rank 0 only."""
+        if self.scene.linear or self.base == "predictor":
+            return None
+        if self._flow_check is None:
+            from fem_dual.integrate.flow_check import FlowCheck
+
+            base_state = self.backend.predictor
+            force = base_state.force if isinstance(base_state, FlowPredictor) else None
+            tic = time.perf_counter()
+            self._flow_check = FlowCheck(self.scene, self.cells, force)
+            self.setup_s += time.perf_counter() - tic
+        return self._flow_check
+
     def begin(self, config: RunConfig) -> None:
         """Set up a run: the scene's parameter values, fresh counts, superposition bases."""
         if config.scene is not self.scene and config.scene != self.scene:
+            if self._flow_check is not None:
+                self._flow_check.use_scene(config.scene)
             if self.modal is not None and self.modal.physical != config.scene:
                 self.modal = ModalBasis(config.scene)
                 if self._companion is not None:  # shares the modes

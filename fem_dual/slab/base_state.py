@@ -163,6 +163,15 @@ class FlowPredictor:
         self._last: tuple = (None, None, None, None)
         self._reads: Dict[bytes, np.ndarray] = {}  # the run read at given times
 
+    def ends(self, z0: np.ndarray, end: float) -> np.ndarray:
+        """(steps + 1, 2n): the states at the step ends of a run over a slab of length `end`
+        from z0 (the kept run untouched; the compiled loop's array, valid until its next run).
+
+        Raises:
+            SolveError: a value was not finite.
+        """
+        return self._run(np.asarray(z0, dtype=float), float(end))[0]
+
     def _run(self, z0: np.ndarray, end: float):
         """(states, rates) at the step ends: (steps + 1, 2n) each. Classical RK4 of z' = f(z)
         for z = (x, v), f = (v, a(x)), in its Nystrom form (the same stages and sums, with
