@@ -178,10 +178,10 @@ class Simulation:
         if self._flow_check is None:
             from fem_dual.integrate.flow_check import FlowCheck
 
-            base_state = self.backend.predictor
-            force = base_state.force if isinstance(base_state, FlowPredictor) else None
+            companion = self.companion.backend.predictor  # (the companion's set-up is its own)
             tic = time.perf_counter()
-            self._flow_check = FlowCheck(self.scene, self.cells, force)
+            self._flow_check = FlowCheck.of(self.scene, self.cells, self.backend.predictor,
+                                            companion)
             self.setup_s += time.perf_counter() - tic
         return self._flow_check
 

@@ -164,13 +164,23 @@ class FlowPredictor:
         self._reads: Dict[bytes, np.ndarray] = {}  # the run read at given times
 
     def ends(self, z0: np.ndarray, end: float) -> np.ndarray:
-        """(steps + 1, 2n): the states at the step ends of a run over a slab of length `end`
-        from z0 (the kept run untouched; the compiled loop's array, valid until its next run).
+        """(steps + 1, 2n): the states at the step ends of the run over a slab of length
+        `end` > 0 from z0: the kept run where it is that one, else a new kept run (valid until
+        the next run).
 
         Raises:
             SolveError: a value was not finite.
         """
-        return self._run(np.asarray(z0, dtype=float), float(end))[0]
+        return self._kept(np.asarray(z0, dtype=float), float(end))[2]
+
+    def _kept(self, z0: np.ndarray, end: float) -> tuple:
+        """The kept run (z0, end, states, rates), made the run from z0 over `end` first."""
+        if not (self._last[0] is not None and self._last[1] == end
+                and np.array_equal(self._last[0], z0)):
+            self.forget()  # (a run that fails leaves no kept run: its step ends are reused)
+            self._last = (z0.copy(), end) + ((np.array([z0]), np.zeros((1, len(z0))))
+                                              if end <= 0 else self._run(z0, end))
+        return self._last
 
     def _run(self, z0: np.ndarray, end: float):
         """(states, rates) at the step ends: (steps + 1, 2n) each. Classical RK4 of z' = f(z)
@@ -239,14 +249,8 @@ class FlowPredictor:
     def along(self, z0: np.ndarray, fractions: np.ndarray, end: float) -> np.ndarray:
         """The predictor at the times fractions * end of a slab of length `end` (a slab's
         nodes: their cubic Hermite weights are found once per array of fractions)."""
-        z0 = np.asarray(z0, dtype=float)
         end = float(end)
-        if not (self._last[0] is not None and self._last[1] == end
-                and np.array_equal(self._last[0], z0)):
-            self.forget()  # (a run that fails leaves no kept run: its step ends are reused)
-            self._last = (z0.copy(), end) + ((np.array([z0]), np.zeros((1, len(z0))))
-                                              if end <= 0 else self._run(z0, end))
-        _, _, states, rates = self._last
+        _, _, states, rates = self._kept(np.asarray(z0, dtype=float), end)
         key = fractions.tobytes()
         if key in self._reads:  # the same slab read again (a restore after a probe)
             return self._reads[key]

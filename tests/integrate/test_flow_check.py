@@ -27,7 +27,7 @@ def _slab(scene, z0, dt, local):
 
 def test_the_motion_passes_and_a_jump_is_named():
     scene = RunConfig.create("curl3d").scene
-    check = FlowCheck(scene, CELLS)
+    check = FlowCheck.of(scene, CELLS)
     z0 = np.array([0.3, 0.2, 0.1, 0.0, 0.0, 0.0])
     vals, estimate = _slab(scene, z0, 0.5, 1e-9)
     assert check.excess(z0, 0.5, vals, estimate) is None
@@ -43,7 +43,7 @@ def test_the_motion_passes_and_a_jump_is_named():
 def test_a_motion_rk4_cannot_follow_tells_nothing():
     """RK4 overflows (a motion far faster than the cells): no verdict either way."""
     scene = RunConfig.create("curl3d").scene
-    check = FlowCheck(scene, CELLS)
+    check = FlowCheck.of(scene, CELLS)
     z0 = np.array([1e150, 1e150, 1e150, 0.0, 0.0, 0.0])
     vals = VertexValues(np.linspace(0, 1, CELLS + 1), np.zeros((CELLS + 1, 3)),
                         np.zeros((CELLS + 1, 3)), np.zeros(CELLS + 1))
