@@ -253,11 +253,16 @@ class Simulation:
         leading slab axis, by superposition, on rank 0 (None elsewhere); without `fields` only
         x and v, without `duals` no dual fields, with `last` the slab's end only. Collective
         the first time dt is seen."""
+        return self._modal_batch(Z if self.modal is None else self.modal.forward(Z), dt,
+                                 fields, duals, last)
+
+    def _modal_batch(self, R: np.ndarray, dt: float, fields: bool, duals: bool,
+                     last: bool) -> Optional[VertexValues]:
+        """solve_batch from the start states R in the coordinates the slabs are solved in."""
         if self.modal is None:
-            values = self.superposition.batch(Z, dt, fields, last)
+            values = self.superposition.batch(R, dt, fields, last)
         else:
-            values = self.superposition.batch(self._dropped(self.modal.forward(Z), dt), dt,
-                                              fields, last)
+            values = self.superposition.batch(self._dropped(R, dt), dt, fields, last)
         if values is not None and not duals:
             values.xi = values.eta = None
         return values if self.modal is None else self.modal.back(values)
@@ -282,12 +287,14 @@ class Simulation:
                 sim.solve_batch(np.zeros((1, n2)), dt, fields=False, last=True)  # the bases
             self.share_bases(dt)
             cuts = np.linspace(0, n2, comm.size + 1).round().astype(int)
-            mine = np.eye(n2)[cuts[comm.rank]:cuts[comm.rank + 1]]
+            rows = slice(cuts[comm.rank], cuts[comm.rank + 1])
+            # this rank's unit start states, in the slabs' coordinates
+            mine = np.eye(n2)[rows] if self.modal is None else self.modal.forward_units(rows)
             ends = []
             for sim in (self, self.companion):
                 local = np.zeros((0, n2))
                 if len(mine):
-                    values = sim.solve_batch(mine, dt, fields=False, last=True)
+                    values = sim._modal_batch(mine, dt, fields=False, duals=True, last=True)
                     local = np.hstack([values.x[:, -1], values.v[:, -1]])
                 parts = comm.gather(local, root=0) if comm.size > 1 else [local]
                 ends.append(np.vstack(parts).T if comm.rank == 0 else None)
