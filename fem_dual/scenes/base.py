@@ -266,10 +266,37 @@ def require_square(scene: "Scene", name: str, enters: str) -> None:
                          f"{enters}) must be finite and at least {TINY:.4g}")
 
 
+# From this size a symmetric matrix is first tried by Cholesky with LAPACK's condition estimate
+# (a sixth of eigvalsh's time: 4 ms against 22 ms at 450 dofs); below it, scipy is not loaded
+# to check an input. A factor whose reciprocal condition is at least CLEARLY_DEFINITE shows
+# a positive definite matrix (the factorisation's backward error, some n eps, lies far below
+# its smallest eigenvalue); anything else is decided by the eigenvalues, as for small ones.
+CHOLESKY_FROM = 64
+CLEARLY_DEFINITE = 1e-10
+
+
+def _clearly_definite(matrix: np.ndarray) -> bool:
+    """Whether a symmetric `matrix` of CHOLESKY_FROM rows or more is certainly positive
+    definite with a normal smallest eigenvalue (False: the eigenvalues decide)."""
+    if len(matrix) < CHOLESKY_FROM:
+        return False
+    from scipy.linalg import lapack
+
+    factor, info = lapack.dpotrf(matrix, lower=False, clean=False)
+    if info != 0:
+        return False
+    norm = float(np.abs(matrix).sum(axis=0).max())
+    rcond, info = lapack.dpocon(factor, norm)
+    # (the smallest eigenvalue is at least about rcond |A|_1: normal with a margin of 1e18)
+    return info == 0 and rcond >= CLEARLY_DEFINITE and rcond * norm >= 1e18 * TINY
+
+
 def is_spd(matrix: np.ndarray) -> bool:
     scale = max(np.abs(matrix).max(), 1e-300)
-    return (np.abs(matrix - matrix.T).max() <= 1e-12 * scale
-            and np.linalg.eigvalsh(0.5 * (matrix + matrix.T)).min() > 0)
+    if not np.abs(matrix - matrix.T).max() <= 1e-12 * scale:
+        return False
+    symmetric = 0.5 * (matrix + matrix.T)
+    return _clearly_definite(symmetric) or np.linalg.eigvalsh(symmetric).min() > 0
 
 
 def require_spd(name: str, matrix: np.ndarray, inverted: bool = False,
@@ -283,6 +310,8 @@ def require_spd(name: str, matrix: np.ndarray, inverted: bool = False,
     scale = max(np.abs(matrix).max(), 1e-300)
     if np.abs(matrix - matrix.T).max() > 1e-12 * scale:
         raise InputError(f"{shown} is not symmetric")
+    if _clearly_definite(matrix):
+        return
     smallest = np.linalg.eigvalsh(matrix).min()
     if smallest <= 0:
         raise InputError(f"{shown} is not positive definite")
