@@ -220,12 +220,15 @@ class _Run:
         """The verdict on an accepted nonlinear slab: still that where its answer is as near
         classical Runge-Kutta from the same start as its estimate says, or where RK4 cannot
         tell (fem_dual.integrate.flow_check); else "retry". Collective."""
-        why = None
-        if self.flow_check is not None and verdict.estimate is not None:
+        why = problem = None
+        if self.flow_check is not None and verdict.estimate is not None:  # (rank 0)
             tic = time.perf_counter()
-            why = self.flow_check.excess(z, dt, vals, verdict.estimate)
+            why, problem = on_root(self.comm, lambda: self.flow_check.excess(
+                z, dt, vals, verdict.estimate))
             self.timings["estimate_s"] += time.perf_counter() - tic
-        why = bcast(self.comm, why)
+        why, problem = bcast(self.comm, (why, problem))  # (a failure on rank 0 ends every rank)
+        if problem is not None:
+            return Verdict("error", None, problem)
         return verdict if why is None else Verdict("retry", None, why)
 
     def _cut_at_kink(self, vals: Optional[VertexValues], t0: float,

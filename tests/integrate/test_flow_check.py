@@ -2,6 +2,7 @@
 (fem_dual.integrate.flow_check): an answer on the motion passes, one that leaves it by more than
 its estimate says is named, and a motion RK4 cannot follow tells nothing."""
 import numpy as np
+import pytest
 from scipy.integrate import solve_ivp
 
 from fem_dual import RunConfig
@@ -49,3 +50,19 @@ def test_a_motion_rk4_cannot_follow_tells_nothing():
                         np.zeros((CELLS + 1, 3)), np.zeros(CELLS + 1))
     estimate = SlabEstimate(0.0, 1.0, np.zeros((CELLS + 1, 6)), np.zeros((1, 6)), 0.0, 0.0)
     assert check.excess(z0, 1.0, vals, estimate) is None
+
+
+@pytest.mark.mpi
+def test_a_check_that_fails_ends_the_run_with_its_reason(monkeypatch):
+    """A failure inside the check (on rank 0) ends the run on every rank with its reason,
+    keeping the slabs before it, instead of leaving the other ranks waiting."""
+    from fem_dual import run
+    from fem_dual.errors import SolveError
+
+    def broken(self, *args):
+        raise RuntimeError("the check broke")
+
+    monkeypatch.setattr(FlowCheck, "excess", broken)
+    with pytest.raises(SolveError, match="the check broke") as info:
+        run(RunConfig.create("curl3d", T=1.0, slabs=2, cells=4, degree=3))
+    assert info.value.partial is not None and info.value.partial.t.size == 0
