@@ -95,6 +95,9 @@ class _Run:
 
     def __init__(self, sim: "Simulation", config: RunConfig, progress: bool, resume: bool,
                  setup_s: float = 0.0):
+        # (built before the run's clock starts: its set-up is compile time; the companion whose
+        # base it reads is built on every rank already: Simulation.run)
+        self.flow_check = sim.flow_check if sim.comm.rank == 0 else None
         self.tic = time.perf_counter()
         self.sim, self.config, self.comm = sim, config, sim.comm
         scene, root = sim.scene, sim.comm.rank == 0
@@ -108,7 +111,6 @@ class _Run:
             self.comm, lambda: XdmfSink(config, scene.name, restart, self.floor))
         self.bar = ProgressSink(config.T) if (progress and root) else None
         self.sinks = [s for s in (self.acc, self.xdmf, self.bar) if s is not None]
-        self.flow_check = sim.flow_check if root else None  # (its set-up is compile time)
         self.timings = {"compile_s": sim.charged_setup(), "setup_s": setup_s, "solve_s": 0.0,
                         "estimate_s": 0.0, "recovery_s": 0.0, "output_s": 0.0}
         start_rate = _start_rate(scene, config.x0, config.v0)
