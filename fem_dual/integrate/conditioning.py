@@ -28,7 +28,7 @@ import numpy as np
 from fem_dual.config import MODAL_MAX_DOFS
 from fem_dual.integrate.estimate import ESTIMATE_SAFETY
 from fem_dual.modes import block_motion, block_slices, refined_blocks
-from fem_dual.slab.modal import modal_decomposition
+from fem_dual.slab.modal import modal_decomposition, modes_inverse
 
 __all__ = ["DataFloor", "data_floor", "SAMPLES", "TIMES"]
 
@@ -90,7 +90,8 @@ def data_floor(scene, x0: np.ndarray, v0: np.ndarray, T: float) -> Optional[Data
     U, Kr = modes[0], modes[1]
     M, K = scene.mass_matrix(), scene.stiffness_matrix()
     slices = block_slices(Kr)
-    r0, rv0 = np.linalg.solve(U, x0), np.linalg.solve(U, v0)
+    Uinv = modes_inverse(scene)
+    r0, rv0 = Uinv @ x0, Uinv @ v0
     t = T * np.arange(1, TIMES + 1) / TIMES
     r, rv = block_motion(Kr, slices, r0, rv0, t)
     inside = np.zeros(Kr.shape, dtype=bool)
@@ -99,7 +100,7 @@ def data_floor(scene, x0: np.ndarray, v0: np.ndarray, T: float) -> Optional[Data
     rng = np.random.default_rng(0)
     scaled = U * _unit_round_off(M, K, slices)  # each column with the unit of its block's K Ub
     worst = np.zeros((TIMES, 2))
-    to_modal = np.linalg.solve(U, np.linalg.inv(M))  # U^-1 M^-1, once for every sample
+    to_modal = Uinv @ scene.mass_inverse()  # U^-1 M^-1, once for every sample
     scaled_kr = scaled @ Kr
     for _ in range(SAMPLES):
         E = _sparse(K * rng.standard_normal(K.shape))

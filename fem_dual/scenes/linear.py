@@ -157,6 +157,13 @@ class LinearScene(Scene):
     def _mass_inverse(self) -> np.ndarray:
         return np.linalg.inv(self.mass_matrix())
 
+    def mass_inverse(self) -> np.ndarray:
+        """M^-1, computed once per scene (read-only: the modal maps and the data floor share
+        it)."""
+        Minv = self._mass_inverse
+        Minv.flags.writeable = False
+        return Minv
+
     def first_order_matrix(self) -> np.ndarray:
         """A of z' = A z (a copy: the caller may change it)."""
         return self._first_order.copy()

@@ -27,7 +27,8 @@ from fem_dual.slab.values import VertexValues, times_last
 from fem_dual.scenes.base import is_spd
 from fem_dual.scenes.linear import LinearScene
 
-__all__ = ["ModalScene", "ModalBasis", "MAX_CONDITION", "modal_obstacle", "modal_decomposition"]
+__all__ = ["ModalScene", "ModalBasis", "MAX_CONDITION", "modal_obstacle", "modal_decomposition",
+           "modes_inverse"]
 
 RESOLVED_TURN = 0.25  # under a tolerance the zero base drops a mode turning more than this x
 # degree radians per cell: between it and degree radians the slab follows the mode with an
@@ -86,6 +87,15 @@ def _decomposition(scene: LinearScene) -> tuple:
     return modes, None
 
 
+@functools.lru_cache(maxsize=4)
+def modes_inverse(scene: LinearScene) -> np.ndarray:
+    """U^-1 of the scene's modes (modal_decomposition: not None), once per scene (read-only:
+    the modal maps and the data floor share it)."""
+    Uinv = np.linalg.inv(modal_decomposition(scene)[0])
+    Uinv.flags.writeable = False
+    return Uinv
+
+
 def modal_decomposition(scene: LinearScene) -> Optional[tuple]:
     """(U, Kr, Ar, omega) of the scene's modes (fem_dual.modes.real_modes), or None where they
     cannot be used (modal_obstacle says why)."""
@@ -110,12 +120,12 @@ class ModalBasis:
             raise InputError(f"coordinates=modal: {obstacle}")
         U, Kr, Ar, self.omega = modes  # omega: each coordinate's frequency
         M, D = scene.mass_matrix(), scene.damping_matrix()
-        Uinv = np.linalg.inv(U)
+        Uinv = modes_inverse(scene)
         # (undamped: no n x n solve and products for a zero Dr, 45 ms at 450 dofs)
         Dr = Uinv @ np.linalg.solve(M, D @ U) if D.any() else np.zeros_like(U)
         self.physical = scene
         self.U, self.Uinv, self.M = U, Uinv, M
-        self.eta_map = Uinv.T @ np.linalg.inv(M)  # eta_q = M^-1 U^-T eta_r (rows: @ its T)
+        self.eta_map = Uinv.T @ scene.mass_inverse()  # eta_q = M^-1 U^-T eta_r (rows: @ its T)
         # the transposes the maps multiply rows with, contiguous (BLAS is 2x slower on a
         # transposed view)
         self._Ut, self._Uinv_t = np.ascontiguousarray(U.T), np.ascontiguousarray(Uinv.T)
