@@ -310,8 +310,8 @@ KINK_STEP = 1e-9  # past a kink, DOP853 goes on without events for this fraction
 class IVPFlow:
     """DOP853 at rtol = 1e-13 of x' = v, v' = M^-1 F(x), continued chunk by chunk; atol = 1e-16
     (times the start's size where it is below 1) keeps components far below 1 to their own
-    digits (a perturbation of 1e-9 growing near an
-    unstable equilibrium at 1e3 was 1.6e-6 off at atol = 1e-13, 4e-9 at 1e-16).
+    digits (a perturbation of 1e-9 growing near an unstable equilibrium at 1e3 was 1.6e-6 off at
+    atol = 1e-13, 4e-9 at 1e-16).
 
     `kinks(x)` (points, kinks), where given: values whose sign changes are kinks of the force
     (its abs), and `branch(signs)` the acceleration on the branch where they have those signs

@@ -100,7 +100,7 @@ def data_floor(scene, x0: np.ndarray, v0: np.ndarray, T: float) -> Optional[Data
     rng = np.random.default_rng(0)
     scaled = U * _unit_round_off(M, K, slices)  # each column with the unit of its block's K Ub
     worst = np.zeros((TIMES, 2))
-    to_modal = Uinv @ scene.mass_inverse()  # U^-1 M^-1, once for every sample
+    to_modal = Uinv @ scene.mass_inverse  # U^-1 M^-1, once for every sample
     scaled_kr = scaled @ Kr
     for _ in range(SAMPLES):
         E = _sparse(K * rng.standard_normal(K.shape))

@@ -147,12 +147,11 @@ def carry(covariance: np.ndarray, estimate: SlabEstimate,
     """(2n, 2n): the covariance of the round-off the slabs so far left in the state at this
     slab's end: the previous one carried by the slab map's tangent J (2n, 2n: d z_end / d z0;
     J C J^T, the identity where J was not computed), plus this slab's floor in every component,
-    independently. The
-    companion's difference does not see round-off, and sqrt(k) floors (`accumulated_floor`)
-    do not follow a motion whose perturbations grow faster than it does: curl3d T = 9.3 grows
-    its tangent 9e6-fold, |v| to 2.7e3, and answers of every degree ended 5e-8 to 1.4e-7 off
-    (DOP853 at 1e-13 and at 2.3e-14 agree to 1.1e-9), 2.8e-11 of the scale against sqrt(k)
-    floors of 7.5e-12."""
+    independently. The companion's difference does not see round-off, and sqrt(k) floors
+    (`accumulated_floor`) do not follow a motion whose perturbations grow faster than it does:
+    curl3d T = 9.3 grows its tangent 9e6-fold, |v| to 2.7e3, and answers of every degree ended
+    5e-8 to 1.4e-7 off (DOP853 at 1e-13 and at 2.3e-14 agree to 1.1e-9), 2.8e-11 of the scale
+    against sqrt(k) floors of 7.5e-12."""
     n = len(covariance) // 2
     carried = covariance if J is None else J @ covariance @ J.T
     floor = np.repeat(np.asarray(estimate.floor, dtype=float), n) * CARRIED_SHARE

@@ -14,7 +14,7 @@ finer run's own error (some fifteen times over: RK4 is of order 4). Where the an
 from the finer run than FLOW_FACTOR times its estimated error (the largest vertex value of the
 companion's difference, plus the slab's round-off floor), beyond what the two runs can tell,
 the estimate does not vouch for the slab, and it is retried shorter. Answers that follow the
-motion were at most 1.2 times their estimate from DOP853's flow (64 runs of curl3d, curl2d,
+motion were at most 1.2 times their estimate from DOP853's flow (48 runs of curl3d, curl2d,
 Hénon-Heiles and a Duffing force, p = 1..6, fixed slabs and --rtol); that wrong slab 1.1e3.
 
 Where RK4 cannot follow the cells (a stiff motion overflows, or its two runs disagree by more

@@ -209,8 +209,8 @@ class _Run:
                 config.T, output_request(config), None if lost is None else self.state.dropped))
             if verdict.action == "accept" and not sim.scene.linear:
                 verdict = volume_kept(sim, z, t0, dt, vals, verdict)
-            if verdict.action == "accept" and not sim.scene.linear:
-                verdict = self._follows_flow(z, dt, vals, verdict)
+                if verdict.action == "accept":
+                    verdict = self._follows_flow(z, dt, vals, verdict)
         except SolveError as exc:
             verdict = Verdict("retry", None, str(exc), solver=True)
         self.timings["solve_s"] += (time.perf_counter() - tic

@@ -151,16 +151,13 @@ class LinearScene(Scene):
     def accelerations(self, x: np.ndarray, v: np.ndarray) -> np.ndarray:
         """-M^-1 (K x + D v) for each row of x and v (rows, n)."""
         K, D = self.stiffness_matrix(), self.damping_matrix()
-        return -(x @ K.T + v @ D.T) @ self._mass_inverse.T
+        return -(x @ K.T + v @ D.T) @ self.mass_inverse.T
 
     @functools.cached_property
-    def _mass_inverse(self) -> np.ndarray:
-        return np.linalg.inv(self.mass_matrix())
-
     def mass_inverse(self) -> np.ndarray:
-        """M^-1, computed once per scene (read-only: the modal maps and the data floor share
-        it)."""
-        Minv = self._mass_inverse
+        """M^-1, computed once per scene (read-only: the accelerations, the modal maps and the
+        data floor share it)."""
+        Minv = np.linalg.inv(self.mass_matrix())
         Minv.flags.writeable = False
         return Minv
 

@@ -125,7 +125,7 @@ class ModalBasis:
         Dr = Uinv @ np.linalg.solve(M, D @ U) if D.any() else np.zeros_like(U)
         self.physical = scene
         self.U, self.Uinv, self.M = U, Uinv, M
-        self.eta_map = Uinv.T @ scene.mass_inverse()  # eta_q = M^-1 U^-T eta_r (rows: @ its T)
+        self.eta_map = Uinv.T @ scene.mass_inverse  # eta_q = M^-1 U^-T eta_r (rows: @ its T)
         # the transposes the maps multiply rows with, contiguous (BLAS is 2x slower on a
         # transposed view)
         self._Ut, self._Uinv_t = np.ascontiguousarray(U.T), np.ascontiguousarray(Uinv.T)
