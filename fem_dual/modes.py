@@ -267,23 +267,27 @@ def block_motion(Kr: np.ndarray, slices: List[slice], r0: np.ndarray, rv0: np.nd
     """(r, r') at the times t (m,), each (m, n), of r'' + Kr r = 0 from (r0, rv0), block by
     block: a one-mode block in closed form (cos, sin; cosh, sinh for a negative stiffness), a
     larger one through the matrix exponential of its first-order system, whose norm is its own
-    frequency squared, not the fastest mode's."""
+    frequency squared, not the fastest mode's. Several Kr of the same blocks (samples, n, n)
+    give (samples, m, n) each, the one-mode blocks of all at once."""
     t = np.asarray(t, dtype=float)
-    r, rv = np.zeros((len(t), len(r0))), np.zeros((len(t), len(r0)))
+    stack = Kr[None] if Kr.ndim == 2 else Kr
+    r = np.zeros((len(stack), len(t), len(r0)))
+    rv = np.zeros_like(r)
     single = np.array([s.start for s in slices if s.stop - s.start == 1], dtype=int)
     if len(single):
-        w = np.sqrt(Kr[single, single].astype(complex))
-        wt = np.multiply.outer(t, w)
+        w = np.sqrt(stack[:, single, single].astype(complex))[:, None, :]  # (samples, 1, ns)
+        wt = t[:, None] * w
         # sin(w t) / w, continuous through w = 0 (a free mode drifts: t)
         sinc = np.where(np.abs(w) > 0, np.sin(wt) / np.where(w != 0, w, 1.0), t[:, None])
-        r[:, single] = (r0[single] * np.cos(wt) + rv0[single] * sinc).real
-        rv[:, single] = (-r0[single] * w * np.sin(wt) + rv0[single] * np.cos(wt)).real
+        r[..., single] = (r0[single] * np.cos(wt) + rv0[single] * sinc).real
+        rv[..., single] = (-r0[single] * w * np.sin(wt) + rv0[single] * np.cos(wt)).real
     for s in (s for s in slices if s.stop - s.start > 1):
         b = s.stop - s.start
-        A = np.block([[np.zeros((b, b)), np.eye(b)], [-Kr[s, s], np.zeros((b, b))]])
-        z = sla.expm(np.multiply.outer(t, A)) @ np.concatenate([r0[s], rv0[s]])  # (m, 2b)
-        r[:, s], rv[:, s] = z[:, :b], z[:, b:]
-    return r, rv
+        for k, K in enumerate(stack):
+            A = np.block([[np.zeros((b, b)), np.eye(b)], [-K[s, s], np.zeros((b, b))]])
+            z = sla.expm(np.multiply.outer(t, A)) @ np.concatenate([r0[s], rv0[s]])  # (m, 2b)
+            r[k, :, s], rv[k, :, s] = z[:, :b], z[:, b:]
+    return (r[0], rv[0]) if Kr.ndim == 2 else (r, rv)
 
 
 def cancelling(K: np.ndarray, U: np.ndarray, slices: List[slice],

@@ -93,24 +93,25 @@ def data_floor(scene, x0: np.ndarray, v0: np.ndarray, T: float) -> Optional[Data
     Uinv = modes_inverse(scene)
     r0, rv0 = Uinv @ x0, Uinv @ v0
     t = T * np.arange(1, TIMES + 1) / TIMES
-    r, rv = block_motion(Kr, slices, r0, rv0, t)
     inside = np.zeros(Kr.shape, dtype=bool)
     for s in slices:
         inside[s, s] = True
     rng = np.random.default_rng(0)
     scaled = U * _unit_round_off(M, K, slices)  # each column with the unit of its block's K Ub
-    worst = np.zeros((TIMES, 2))
     to_modal = Uinv @ scene.mass_inverse  # U^-1 M^-1, once for every sample
     scaled_kr = scaled @ Kr
-    for _ in range(SAMPLES):
+    perturbed = np.empty((1 + SAMPLES,) + Kr.shape)  # the exact blocks first, then the samples
+    perturbed[0] = Kr
+    for k in range(1, 1 + SAMPLES):
         E = _sparse(K * rng.standard_normal(K.shape))
         F = _sparse(M * rng.standard_normal(M.shape))
         change = to_modal @ (E @ scaled - F @ scaled_kr)
         change += EPS * Kr * rng.standard_normal(Kr.shape)  # Kr's own rounding
-        rp, rvp = block_motion(Kr + np.where(inside, change, 0.0), slices, r0, rv0, t)
-        dx = np.abs((rp - r) @ U.T).max(axis=1, initial=0.0)
-        dv = np.abs((rvp - rv) @ U.T).max(axis=1, initial=0.0)
-        worst = np.maximum(worst, np.column_stack([dx, dv]))
+        perturbed[k] = Kr + np.where(inside, change, 0.0)
+    motions = block_motion(perturbed, slices, r0, rv0, t)  # (1 + SAMPLES, TIMES, n) each
+    (r, rp), (rv, rvp) = ((m[0], m[1:]) for m in motions)
+    worst = np.column_stack([np.abs((rp - r) @ U.T).max(axis=(0, 2), initial=0.0),
+                             np.abs((rvp - rv) @ U.T).max(axis=(0, 2), initial=0.0)])
     x, v = np.abs(r @ U.T).max(axis=1), np.abs(rv @ U.T).max(axis=1)
     size = np.maximum.accumulate(np.column_stack([x, v]), axis=0)
     size = np.maximum(size, [np.abs(x0).max(initial=0.0), np.abs(v0).max(initial=0.0)])

@@ -135,6 +135,11 @@ def _compiled_summaries(batch: SlabBatch) -> Optional[tuple]:
                      batch.values.hamiltonian, batch.first == 0, _TINY)
 
 
+def _floats(*columns) -> zip:
+    """The rows of equal-length columns as Python floats (converted a column at a time)."""
+    return zip(*(np.asarray(c, dtype=float).ravel().tolist() for c in columns))
+
+
 class Accumulator:
     """Vertex arrays of the whole run and their errors against the reference (rank 0 only)."""
 
@@ -182,13 +187,12 @@ class Accumulator:
         self.est_rows.append(rows)
         self.est_x, self.est_v = max(self.est_x, peak_x), max(self.est_v, peak_v)
         self.est_final = (float(final[0]), float(final[1]))
-        self.estimates += [{"t0": float(a), "dt": float(b), "local": float(c), "global": float(d),
-                            "local_weighted": float(e), "global_weighted": float(f)}
-                           for a, b, c, d, e, f in zip(batch.t0, batch.dt, local, glob,
-                                                       batch.local_weighted,
-                                                       batch.global_weighted)]
-        self.ham += [{"min": float(a), "max": float(b), "drift": float(c)}
-                     for a, b, c in zip(low, high, drift)]
+        self.estimates += [{"t0": a, "dt": b, "local": c, "global": d, "local_weighted": e,
+                            "global_weighted": f}
+                           for a, b, c, d, e, f in _floats(batch.t0, batch.dt, local, glob,
+                                                           batch.local_weighted,
+                                                           batch.global_weighted)]
+        self.ham += [{"min": a, "max": b, "drift": c} for a, b, c in _floats(low, high, drift)]
 
     def _kept(self, shape: Tuple[int, int], first: bool) -> np.ndarray:
         """Which vertices (slabs, vertices) of a batch the run's arrays take: each junction

@@ -213,13 +213,30 @@ class Superposition(Bases):
         rows = np.tensordot(Z, linear, axes=1)
         rows[..., 0] = linear[0][:, 0]  # s is not linear in z
         h = 1 + 2 * self.problem.n
-        rows[..., h] = np.einsum("rij,ki,kj->kr", quad, Z, Z) if fields else 0.0
+        rows[..., h] = quadratic_rows(quad, Z) if fields else 0.0
         return select(self.sampler.average(rows), fields, last)
 
     def __call__(self, x0: np.ndarray, v0: np.ndarray, dt: float) -> Optional[VertexValues]:
         """Vertex values of the slab of length dt from (x0, v0) on rank 0 (None elsewhere).
         Collective the first time a slab length is seen (its basis is solved then)."""
         return first(self.batch(np.concatenate([x0, v0])[None], dt))
+
+
+QUADRATIC_BLOCK = 2**20  # doubles of the products of quadratic_rows held at once
+
+
+def quadratic_rows(quad: np.ndarray, Z: np.ndarray) -> np.ndarray:
+    """(slabs, rows): Z_k^T quad_r Z_k for the start states Z (slabs, m) and the forms quad
+    (rows, m, m), through one matrix product (a three-operand einsum loops in C element by
+    element: 7x slower for 250 slabs)."""
+    m, flat = Z.shape[1], quad.reshape(-1, quad.shape[-1]).T
+    out = np.empty((len(Z), len(quad)))
+    step = max(1, QUADRATIC_BLOCK // max(1, flat.shape[1]))  # slabs whose products fit
+    for a in range(0, len(Z), step):
+        z = Z[a:a + step]
+        left = (z @ flat).reshape(len(z), len(quad), m)  # (Z_k^T quad_r)_j
+        out[a:a + step] = np.einsum("krj,kj->kr", left, z)
+    return out
 
 
 def select(values: VertexValues, fields: bool, last: bool) -> VertexValues:
