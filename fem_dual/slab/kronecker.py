@@ -79,12 +79,11 @@ class KroneckerProblem:
 
     def set_scene_constants(self, scene) -> None:
         self.scene = scene
-        self.c = _scene_products(scene)
+        self.c, kinds = _scene_products(scene)
         M = self.c["M"]
         self._mass = None if np.array_equal(M, np.eye(self.n)) else sla.cho_factor(M)
         # right factors of the residual's products, for all columns and for this rank's own
         # (each matrix's structure found once: two factors each, answer and companion alike)
-        kinds = _structures(self.c)
         self._right = {name: (_RightFactor(value.T, slice(None), kinds[name]),
                               _RightFactor(value.T, self.mine, kinds[name]))
                        for name, value in self.c.items()}
@@ -161,15 +160,17 @@ class KroneckerProblem:
         return b_xi, b_eta
 
 
-_LAST_PRODUCTS: List = [None, None]  # (weak reference to a scene, its products)
+_LAST_PRODUCTS: List = [None, None, None]  # (weak reference to a scene, its products, kinds)
 
 
-def _scene_products(scene) -> Dict[str, np.ndarray]:
-    """The coefficient matrices of a scene's slab residual, computed once per scene object (a
-    simulation and its error companion share them; 0.12 s for a 200-link column)."""
-    ref, products = _LAST_PRODUCTS
+def _scene_products(scene) -> Tuple[Dict[str, np.ndarray], Dict[str, Tuple[bool, bool]]]:
+    """The coefficient matrices of a scene's slab residual and the (zero, diagonal) structure
+    of each (`_RightFactor`), computed once per scene object (a simulation and its error
+    companion share them; the products took 0.12 s for a 200-link column, 248 structure checks
+    of 450 x 450 matrices 64 ms of a cauchy2d run)."""
+    ref, products, kinds = _LAST_PRODUCTS
     if ref is not None and ref() is scene:
-        return products
+        return products, kinds
     c = scene.constants()
     M, K, D, A, B = (np.asarray(c[k], float) for k in ("M", "K", "D", "A", "B"))
     Ai, Bi = c["Ainv"], c["Binv"]
@@ -180,21 +181,9 @@ def _scene_products(scene) -> Dict[str, np.ndarray]:
                 "DBiDt": _product(D, Bi, D.T), "DBiM": _product(D, Bi, M),
                 "MBi": _product(M, Bi), "MBiDt": _product(M, Bi, D.T),
                 "MBiM": _product(M, Bi, M)}
-    _LAST_PRODUCTS[:] = [weakref.ref(scene), products]
-    return products
-
-
-_LAST_STRUCTURES: List = [None, None]  # (a products dict, its structures)
-
-
-def _structures(products: Dict[str, np.ndarray]) -> Dict[str, Tuple[bool, bool]]:
-    """(zero, diagonal) of each matrix of a scene's products (`_RightFactor`), found once per
-    products dict (248 checks of 450 x 450 matrices took 64 ms of a cauchy2d run: each for
-    the answer's and the companion's problem, for all columns and for a rank's own)."""
-    if _LAST_STRUCTURES[0] is not products:
-        _LAST_STRUCTURES[:] = [products, {name: (not C.any(), _is_diagonal(C))
-                                          for name, C in products.items()}]
-    return _LAST_STRUCTURES[1]
+    kinds = {name: (not C.any(), _is_diagonal(C)) for name, C in products.items()}
+    _LAST_PRODUCTS[:] = [weakref.ref(scene), products, kinds]
+    return products, kinds
 
 
 def _is_diagonal(C: np.ndarray) -> bool:
