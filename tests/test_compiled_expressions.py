@@ -114,3 +114,55 @@ print(len(calls))
     entries[0].write_text("{not json")
     assert fresh() == 1
     assert jit.get_parameters()["cache_dir"] != tmp_path  # (this process's cache untouched)
+
+
+def test_kernels_are_compiled_for_the_processor_and_keyed_by_it(monkeypatch):
+    """On x86-64 Linux the kernels take -O3 -march=native and a define naming the processor
+    (a hash of /proc/cpuinfo's model and flags); elsewhere DOLFINx's -O2 -g0."""
+    import platform
+
+    flags = compat.jit_flags()
+    if platform.machine() == "x86_64" and Path("/proc/cpuinfo").exists():
+        assert flags[:3] == ["-O3", "-g0", "-march=native"]
+        assert flags[3].startswith("-DFEM_DUAL_CPU=") and len(flags[3]) == 15 + 16
+    assert compat.jit_params()["cffi_extra_compile_args"] == flags
+    compat.jit_flags.cache_clear()
+    try:
+        monkeypatch.setattr(platform, "machine", lambda: "aarch64")
+        assert compat.jit_flags() == ["-O2", "-g0"]
+    finally:
+        compat.jit_flags.cache_clear()
+
+
+@pytest.mark.serial
+def test_a_cache_shared_with_another_processor_holds_a_module_for_each(tmp_path):
+    """A process whose processor is named otherwise (another -DFEM_DUAL_CPU) compiles its own
+    module beside the first one instead of loading it; each then finds its own."""
+    script = f"""
+import sys
+sys.path.insert(0, {str(Path(__file__).parent)!r})
+import numpy as np
+from test_compiled_expressions import _expression, _values, _exact
+from fem_dual import compat
+if sys.argv[1] != "native":
+    compat.jit_flags = lambda: ["-O2", "-g0", "-DFEM_DUAL_CPU=" + sys.argv[1]]
+calls = []
+original = compat._compile
+compat._compile = lambda *a: calls.append(1) or original(*a)
+assert np.allclose(_values(_expression(0.3, 2.0)[0]), _exact(0.3, 2.0), rtol=1e-14)
+print(len(calls))
+"""
+    env = {"XDG_CACHE_HOME": str(tmp_path), "PATH": "/usr/bin:/bin", "HOME": str(tmp_path)}
+
+    def fresh(cpu: str) -> int:
+        done = subprocess.run([sys.executable, "-c", script, cpu], capture_output=True,
+                              text=True, env=env, timeout=300)
+        assert done.returncode == 0, done.stderr[-2000:]
+        return int(done.stdout.split()[-1])
+
+    def modules() -> int:
+        return len(list((tmp_path / "fenics").glob("libffcx_expressions_*.so")))
+    assert fresh("native") == 1 and modules() == 1
+    assert fresh("otherchip") == 1 and modules() == 2  # compiled again, beside
+    assert fresh("native") == 0 and fresh("otherchip") == 0
+    assert modules() == 2
