@@ -294,12 +294,16 @@ def linear_flow(M: np.ndarray, K: np.ndarray, D: Optional[np.ndarray], x0: np.nd
 
 
 def _block_modes(M: np.ndarray, K: np.ndarray) -> Optional[Tuple[np.ndarray, np.ndarray]]:
-    """(U, Kr) of fem_dual.modes.real_modes, or None where they are incomplete or U is no
-    better conditioned than EIGEN_MAX_CONDITION."""
-    from fem_dual.modes import finite_real_modes
+    """(U, Kr) of fem_dual.modes.real_modes, or None where they are incomplete, U is no
+    better conditioned than EIGEN_MAX_CONDITION, or they do not reproduce K (modes_hold: a
+    defective repeated frequency, whose grouped blocks are not invariant)."""
+    from fem_dual.modes import finite_real_modes, modes_hold
 
     modes = finite_real_modes(M, K)
-    if modes is None or not np.linalg.cond(modes[0]) <= EIGEN_MAX_CONDITION:
+    if modes is None:
+        return None
+    cond = np.linalg.cond(modes[0])
+    if not (cond <= EIGEN_MAX_CONDITION and modes_hold(M, K, cond)[0]):
         return None
     return modes[0], modes[1]
 

@@ -22,7 +22,7 @@ from typing import ClassVar, Optional, Tuple
 import numpy as np
 
 from fem_dual.errors import InputError
-from fem_dual.modes import finite_real_modes
+from fem_dual.modes import finite_real_modes, modes_hold
 from fem_dual.slab.values import VertexValues, times_last
 from fem_dual.scenes.base import is_spd
 from fem_dual.scenes.linear import LinearScene
@@ -78,6 +78,11 @@ def _decomposition(scene: LinearScene) -> tuple:
     if not cond < MAX_CONDITION:
         return None, (f"the modes of (K, M) are nearly dependent (condition number "
                       f"{cond:.3g}, near flutter or a repeated frequency)")
+    hold, error = modes_hold(scene.mass_matrix(), scene.stiffness_matrix(), cond)
+    if not hold:
+        return None, (f"the modes of (K, M) do not hold: K U - M U Kr is {error:.3g} of K's "
+                      "size, beyond their round-off (a repeated frequency whose modes are "
+                      "defective)")
     if not is_spd(Ar):
         lam = np.linalg.eigvals(modes[1])
         if (lam.imag[lam.real <= 0] != 0).any():
