@@ -6,7 +6,7 @@ import functools
 import logging
 import os
 from contextlib import contextmanager
-from typing import Any, Dict, Iterator, List, Optional
+from typing import Any, Callable, Dict, Iterator, List, Optional
 
 import numpy as np
 import ufl
@@ -169,19 +169,36 @@ def jit_params() -> Dict[str, Any]:
     return {"timeout": JIT_TIMEOUT, "cffi_extra_compile_args": jit_flags()}
 
 
-@functools.lru_cache(maxsize=1)
+_PORTABLE: List[bool] = [False]  # the compiler refused the processor's flags: DOLFINx's own
+
+
 def jit_flags() -> List[str]:
-    """The C compiler's flags for FFCx's kernels: DOLFINx's -O2 -g0, and where the processor
-    can be named (x86-64: its model and instruction sets, from /proc/cpuinfo), -O3 -march=native with
-    that name in a define. The flags are part of FFCx's cache key, so a cache shared by
-    machines of different processors holds a module for each instead of code that another
-    cannot run. -march=native (fused multiply-adds, wider vectors) makes a curl3d density's
-    kernel of gradient and Hessian about twice as fast (4 cells at p = 3: 35 -> 15 us)."""
+    """The C compiler's flags for FFCx's kernels: a user's own (`cffi_extra_compile_args` of
+    DOLFINx's JIT parameter files, where they differ from its default -O2 -g0); else, where
+    the processor can be named, `processor_flags`; else (or where the compiler refused those,
+    `with_portable_fallback`) DOLFINx's -O2 -g0."""
+    from dolfinx import jit
+
+    default = list(jit.DOLFINX_DEFAULT_JIT_PARAMETERS["cffi_extra_compile_args"][0])
+    asked = list(jit.get_parameters().get("cffi_extra_compile_args") or default)
+    if asked != default:
+        return asked
+    return default if _PORTABLE[0] else (processor_flags() or default)
+
+
+@functools.lru_cache(maxsize=1)
+def processor_flags() -> Optional[List[str]]:
+    """-O3 -march=native with a define that names the processor (x86-64: a hash of its model
+    and instruction sets in /proc/cpuinfo), or None where it cannot be named. The flags are
+    part of FFCx's cache key, so a cache shared by machines of different processors holds a
+    module for each instead of code that another cannot run. -march=native (fused multiply-
+    adds, wider vectors) makes a curl3d density's kernel of gradient and Hessian about twice as
+    fast (4 cells at p = 3: 35 -> 15 us)."""
     import hashlib
     import platform
 
     lines: List[str] = []
-    if platform.machine() == "x86_64":  # (where every C compiler takes -march=native)
+    if platform.machine() == "x86_64":
         try:
             with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as info:
                 lines = [line for line in info
@@ -189,15 +206,32 @@ def jit_flags() -> List[str]:
         except OSError:
             pass
     if not lines:
-        return ["-O2", "-g0"]
+        return None
     tag = hashlib.sha256("".join(sorted(set(lines))).encode()).hexdigest()[:16]
     return ["-O3", "-g0", "-march=native", f"-DFEM_DUAL_CPU={tag}"]
+
+
+def with_portable_fallback(compile_with: Callable[[Dict[str, Any]], Any]) -> Any:
+    """compile_with(jit_params()); where the C compiler fails with the processor's flags (one
+    that rejects -march=native), once more with DOLFINx's own, which every later compilation
+    of the process then takes. Other failures are raised as they are."""
+    flags = jit_flags()
+    try:
+        return compile_with(jit_params())
+    except Exception as exc:  # noqa: BLE001 -- a compiler failure is told by its type or text
+        compiler = (any(c.__name__ in ("CompileError", "VerificationError")  # (cffi's)
+                        for c in type(exc).__mro__)
+                    or str(exc).startswith("Failed just-in-time compilation"))  # (under MPI)
+        if not compiler or flags != processor_flags():
+            raise
+    _PORTABLE[0] = True
+    return compile_with(jit_params())
 
 
 def compile_form(form: ufl.Form) -> fem.FormMetaClass:
     """`fem.form(form)` with `jit_params`, waiting for a concurrent compilation of the same form
     (JIT_TIMEOUT)."""
-    return fem.form(form, jit_params=jit_params())
+    return with_portable_fallback(lambda params: fem.form(form, jit_params=params))
 
 
 # Compiled expressions by the signature of the expression as written (before its derivatives
@@ -248,9 +282,9 @@ def _compile(expr, points, coefficients, constants, cache_dir, key) -> tuple:
 
     expanded = expand_derivatives(expr)
     mesh = expr.ufl_domain().ufl_cargo()
-    ufcx, module, _ = jit.ffcx_jit(mesh.comm, (expanded, points),
-                                   form_compiler_params={"scalar_type": "double"},
-                                   jit_params=jit_params())
+    ufcx, module, _ = with_portable_fallback(lambda params: jit.ffcx_jit(
+        mesh.comm, (expanded, points), form_compiler_params={"scalar_type": "double"},
+        jit_params=params))
     kernel = ufcx.original_coefficient_positions
     expanded_coefficients = ufl.algorithms.extract_coefficients(expanded)
     coefficient_index = [coefficients.index(expanded_coefficients[kernel[i]])

@@ -302,8 +302,7 @@ def _block_modes(M: np.ndarray, K: np.ndarray) -> Optional[Tuple[np.ndarray, np.
     modes = finite_real_modes(M, K)
     if modes is None:
         return None
-    cond = np.linalg.cond(modes[0])
-    if not (cond <= EIGEN_MAX_CONDITION and modes_hold(M, K, cond)[0]):
+    if not (np.linalg.cond(modes[0]) <= EIGEN_MAX_CONDITION and modes_hold(M, K)[0]):
         return None
     return modes[0], modes[1]
 

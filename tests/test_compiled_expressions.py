@@ -118,7 +118,8 @@ print(len(calls))
 
 def test_kernels_are_compiled_for_the_processor_and_keyed_by_it(monkeypatch):
     """On x86-64 Linux the kernels take -O3 -march=native and a define naming the processor
-    (a hash of /proc/cpuinfo's model and flags); elsewhere DOLFINx's -O2 -g0."""
+    (a hash of /proc/cpuinfo's model and flags); elsewhere DOLFINx's -O2 -g0; a user's own
+    flags (DOLFINx's JIT parameter files) are kept."""
     import platform
 
     flags = compat.jit_flags()
@@ -126,12 +127,41 @@ def test_kernels_are_compiled_for_the_processor_and_keyed_by_it(monkeypatch):
         assert flags[:3] == ["-O3", "-g0", "-march=native"]
         assert flags[3].startswith("-DFEM_DUAL_CPU=") and len(flags[3]) == 15 + 16
     assert compat.jit_params()["cffi_extra_compile_args"] == flags
-    compat.jit_flags.cache_clear()
+    compat.processor_flags.cache_clear()
     try:
         monkeypatch.setattr(platform, "machine", lambda: "aarch64")
         assert compat.jit_flags() == ["-O2", "-g0"]
     finally:
-        compat.jit_flags.cache_clear()
+        compat.processor_flags.cache_clear()
+    own = {**jit.get_parameters(), "cffi_extra_compile_args": ["-O1", "-DMINE"]}
+    monkeypatch.setattr(jit, "get_parameters", lambda *a, **k: own)
+    assert compat.jit_flags() == ["-O1", "-DMINE"]
+
+
+@pytest.mark.serial
+def test_a_compiler_that_refuses_the_processor_flags_compiles_with_dolfinx_own(tmp_path):
+    """A C compiler that rejects -march=native: the kernels are compiled with -O2 -g0 and
+    the run's numbers are right."""
+    fake = tmp_path / "cc"
+    fake.write_text("#!/bin/sh\nfor a in \"$@\"; do [ \"$a\" = -march=native ] && "
+                    "{ echo 'cc: error: unrecognized option -march=native' >&2; exit 1; }; done\n"
+                    "exec gcc \"$@\"\n")
+    fake.chmod(0o755)
+    script = f"""
+import sys
+sys.path.insert(0, {str(Path(__file__).parent)!r})
+import numpy as np
+from test_compiled_expressions import _expression, _values, _exact
+from fem_dual import compat
+assert np.allclose(_values(_expression(0.3, 2.0)[0]), _exact(0.3, 2.0), rtol=1e-14)
+print(compat.jit_flags())
+"""
+    env = {"XDG_CACHE_HOME": str(tmp_path), "PATH": "/usr/bin:/bin", "HOME": str(tmp_path),
+           "CC": str(fake)}
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          env=env, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split("\n")[-2] == "['-O2', '-g0']"
 
 
 @pytest.mark.serial

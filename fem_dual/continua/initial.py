@@ -16,7 +16,7 @@ import numpy as np
 import ufl
 from dolfinx import fem
 
-from fem_dual.compat import constant, quiet_jit_logging
+from fem_dual.compat import constant, quiet_jit_logging, with_portable_fallback
 from fem_dual.errors import InputError
 from fem_dual.expression import parse_force
 from fem_dual.continua.dofs import leaf_spaces
@@ -82,8 +82,9 @@ def interpolate_fields(V: fem.FunctionSpace, texts: Sequence[str],
         if isinstance(value, float):
             part.x.array[:] = value
         else:
-            expr = jit_input(f"initial field {text[:60]!r}", lambda: fem.Expression(
-                value, collapsed.element.interpolation_points()))
+            expr = jit_input(f"initial field {text[:60]!r}", lambda: with_portable_fallback(
+                lambda params: fem.Expression(value, collapsed.element.interpolation_points(),
+                                              jit_params=params)))
             part.interpolate(expr)
         u.x.array[parent] = part.x.array
     u.x.scatter_forward()
