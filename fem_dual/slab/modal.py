@@ -80,8 +80,8 @@ def _decomposition(scene: LinearScene) -> tuple:
                       f"{cond:.3g}, near flutter or a repeated frequency)")
     hold, error = modes_hold(scene.mass_matrix(), scene.stiffness_matrix())
     if not hold:
-        return None, (f"the modes of (K, M) do not hold: K U - M U Kr is {error:.3g} of K's "
-                      "size (a repeated frequency whose modes are defective)")
+        return None, (f"the modes of (K, M) do not hold: their backward error is {error:.3g} "
+                      "(a repeated frequency whose modes are defective, or nearly so)")
     if not is_spd(Ar):
         lam = np.linalg.eigvals(modes[1])
         if (lam.imag[lam.real <= 0] != 0).any():

@@ -31,14 +31,15 @@ def test_the_estimate_bounds_the_error_against_the_matrix_exponential(delta, rto
                                                          r.tolerance["scale_v"])
 
 
-@pytest.mark.parametrize("elements, delta", [(3, 2.0), (8, -2.0)])
-def test_defective_modes_at_the_bound_are_not_used(elements, delta):
+@pytest.mark.parametrize("elements, delta, lam", [(3, 2.0, 1.0), (8, -2.0, 1.0),
+                                                 (4, -3.0, 2.0)])
+def test_defective_modes_at_the_bound_are_not_used(elements, delta, lam):
     """At |delta| = lam + mu K is block triangular and its repeated frequencies are defective:
     modes grouped by pairs do not span invariant subspaces (K U - M U Kr is 3e-9 .. 6e-2 of
     K's size). Modal coordinates are refused with why, the run takes the physical ones and its
     estimate bounds the error; the JSON's error, from a reference that no longer uses those
     modes, is the matrix exponential's (it read 7.5e-3 at 3 elements for an answer 5e-9 off)."""
-    params = {"elements": str(elements), "delta": str(delta)}
+    params = {"elements": str(elements), "delta": str(delta), "lam": str(lam)}
     with pytest.raises(InputError, match="do not hold"):
         RunConfig.create("cauchy2d", params, T=1, rtol=1e-8, coordinates="modal")
     config = RunConfig.create("cauchy2d", params, T=1, rtol=1e-8)

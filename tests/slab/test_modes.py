@@ -115,3 +115,23 @@ def test_the_data_floor_reaches_the_fields_written(tmp_path):
     assert result.estimate["final_v"] == pytest.approx(floor.final()[1])
     _, _, steps = read_series(tmp_path / "beck.xdmf")
     assert steps[-1]["error_estimate"].max() == pytest.approx(floor.final().max())
+
+
+def test_modes_of_graded_masses_hold_and_defective_ones_do_not():
+    """The componentwise backward error of the modes does not see how unevenly rows are
+    scaled: a column whose masses alternate 1 and 1e-4 (or grow by 1e6) keeps its modal
+    coordinates; cauchy2d at |delta| = lam + mu (defective) does not."""
+    from fem_dual.modes import HOLD_BACKWARD, modes_hold
+    from fem_dual.slab.modal import modal_obstacle
+
+    for masses in (["1", "1e-4"] * 25, [f"{10 ** (6 * i / 49):g}" for i in range(50)]):
+        scene = RunConfig.create("column", {"links": "50", "P": "0", "m": ",".join(masses)},
+                                 T=1.0).scene
+        hold, error = modes_hold(scene.mass_matrix(), scene.stiffness_matrix())
+        assert hold and error < 1e-3 * HOLD_BACKWARD
+        assert modal_obstacle(scene) is None
+    scene = RunConfig.create("cauchy2d", {"elements": "4", "delta": "-3", "lam": "2"},
+                             T=1.0).scene
+    hold, error = modes_hold(scene.mass_matrix(), scene.stiffness_matrix())
+    assert not hold and error > 0.1
+    assert "do not hold" in modal_obstacle(scene)
