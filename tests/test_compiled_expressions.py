@@ -196,3 +196,18 @@ print(len(calls))
     assert fresh("otherchip") == 1 and modules() == 2  # compiled again, beside
     assert fresh("native") == 0 and fresh("otherchip") == 0
     assert modules() == 2
+
+
+@pytest.mark.serial
+def test_a_compiler_that_always_fails_ends_the_run_in_one_line(tmp_path):
+    fake = tmp_path / "cc"
+    fake.write_text("#!/bin/sh\necho 'cc: error: broken' >&2\nexit 1\n")
+    fake.chmod(0o755)
+    env = {"XDG_CACHE_HOME": str(tmp_path), "PATH": "/usr/bin:/bin", "HOME": str(tmp_path),
+           "CC": str(fake)}
+    done = subprocess.run([sys.executable, "-m", "fem_dual.cli", "run", "curl2d", "--T", "0.5"],
+                          capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode == 3
+    last = done.stderr.strip().splitlines()[-1]
+    assert last.startswith(f"fem-dual: error: the C compiler ({fake}) failed")
+    assert "Traceback" not in done.stderr

@@ -64,7 +64,7 @@ def _main(argv: Optional[Sequence[str]], comm: "Optional[MPI.Comm]") -> int:
     except Exception as exc:  # a bug: say so, and end every rank (others may wait for this one)
         import traceback
 
-        fault = _cache_fault(exc)
+        fault = _cache_fault(exc) or _compiler_fault(exc)
         if fault is None:
             traceback.print_exc()
         comm = comm if comm is not None else _loaded_world()
@@ -94,6 +94,20 @@ def _cache_fault(exc: Exception) -> Optional[str]:
     return (f"FFCx's cache of compiled forms ({cache}) failed: {one_line(exc).rstrip('.')}; "
             "remove that directory (fem-dual compiles its forms again) or point "
             "XDG_CACHE_HOME at a writable one, and run again")
+
+
+def _compiler_fault(exc: Exception) -> Optional[str]:
+    """One line for a C compiler that fails on FFCx's generated code (with DOLFINx's own flags
+    too, or with a user's: fem_dual.compat.with_portable_fallback); None for any other
+    exception."""
+    compiler = (any(c.__name__ in ("CompileError", "VerificationError")
+                    for c in type(exc).__mro__)
+                or str(exc).startswith("Failed just-in-time compilation"))
+    if not compiler:
+        return None
+    return (f"the C compiler ({os.environ.get('CC', 'cc')}) failed on the code FFCx generated: "
+            f"{one_line(exc).rstrip('.')}; check the compiler (CC) and any "
+            "cffi_extra_compile_args in dolfinx_jit_parameters.json")
 
 
 # Set by a launcher (mpirun, srun, a PMI server) in every process it starts
