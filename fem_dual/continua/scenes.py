@@ -433,8 +433,14 @@ def _energy_projection(column, texts: Sequence[str],
     if all(isinstance(p, float) for p in parts):  # constants: interpolated exactly
         return column.system.interpolate(texts, parameters)
     field = ufl.as_vector(parts)
-    trial = ufl.TrialFunction(column.W)
+    # (the form's own trial function: one made anew on column.W need not compare equal to it,
+    # and a replace that finds nothing left a bilinear form, whose element matrices
+    # assemble_vector wrote past the vector's element buffers)
+    trial = next(a for a in ufl.algorithms.extract_arguments(column.forms["k_el"])
+                 if a.number() == 1)
     rhs = ufl.replace(column.forms["k_el"], {trial: field})
+    if len(ufl.algorithms.extract_arguments(rhs)) != 1:
+        raise RuntimeError("the energy projection's right-hand side is not a linear form")
     b = fem_petsc.assemble_vector(jit_input(f"u0={', '.join(texts)!r}",
                                             lambda: compile_form(rhs)))
     values = b.array[column.system.free].copy()
