@@ -211,6 +211,13 @@ def processor_flags() -> Optional[List[str]]:
     return ["-O3", "-g0", "-march=native", f"-DFEM_DUAL_CPU={tag}"]
 
 
+def compiler_failed(exc: BaseException) -> bool:
+    """Whether `exc` is the C compiler failing on FFCx's generated code (cffi's CompileError or
+    VerificationError; under MPI, DOLFINx's "Failed just-in-time compilation" on every rank)."""
+    return (any(c.__name__ in ("CompileError", "VerificationError") for c in type(exc).__mro__)
+            or str(exc).startswith("Failed just-in-time compilation"))
+
+
 def with_portable_fallback(compile_with: Callable[[Dict[str, Any]], Any]) -> Any:
     """compile_with(jit_params()); where the C compiler fails with the processor's flags (one
     that rejects -march=native), once more with DOLFINx's own, which every later compilation
@@ -219,10 +226,7 @@ def with_portable_fallback(compile_with: Callable[[Dict[str, Any]], Any]) -> Any
     try:
         return compile_with(jit_params())
     except Exception as exc:  # noqa: BLE001 -- a compiler failure is told by its type or text
-        compiler = (any(c.__name__ in ("CompileError", "VerificationError")  # (cffi's)
-                        for c in type(exc).__mro__)
-                    or str(exc).startswith("Failed just-in-time compilation"))  # (under MPI)
-        if not compiler or flags != processor_flags():
+        if not compiler_failed(exc) or flags != processor_flags():
             raise
     _PORTABLE[0] = True
     return compile_with(jit_params())

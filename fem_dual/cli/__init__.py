@@ -100,10 +100,8 @@ def _compiler_fault(exc: Exception) -> Optional[str]:
     """One line for a C compiler that fails on FFCx's generated code (with DOLFINx's own flags
     too, or with a user's: fem_dual.compat.with_portable_fallback); None for any other
     exception."""
-    compiler = (any(c.__name__ in ("CompileError", "VerificationError")
-                    for c in type(exc).__mro__)
-                or str(exc).startswith("Failed just-in-time compilation"))
-    if not compiler:
+    compat = sys.modules.get("fem_dual.compat")  # (not loaded: nothing was compiled)
+    if compat is None or not compat.compiler_failed(exc):
         return None
     return (f"the C compiler ({os.environ.get('CC', 'cc')}) failed on the code FFCx generated: "
             f"{one_line(exc).rstrip('.')}; check the compiler (CC) and any "
