@@ -18,7 +18,7 @@ from fem_dual import jit_lock
 jit_lock.install()  # a compilation that a killed process left behind is redone, not waited for
 
 __all__ = ["function_space", "quiet_jit_logging", "CellPointEvaluator", "CompiledExpression",
-           "compile_expression", "compile_form",
+           "compile_expression", "compile_form", "equispaced_coordinates",
            "vector_space", "vector_space_dg1", "constant", "destroy_petsc",
            "release_function_vector"]
 
@@ -232,9 +232,44 @@ def with_portable_fallback(compile_with: Callable[[Dict[str, Any]], Any]) -> Any
     return compile_with(jit_params())
 
 
+def equispaced_coordinates(msh) -> bool:
+    """Give the UFL domain of `msh` (a DOLFINx mesh or its `ufl.Mesh`) the coordinate element
+    FFCx gives it when it compiles a form on it: Lagrange with equispaced points (the same map
+    for degree 1); True if it had another. FFCx sets it in place, and only when it compiles (not
+    when it finds the module in its cache), and the element is part of every later form's and
+    expression's signature on that mesh: without this, which modules a process looked up
+    depended on whether an earlier one had to be compiled, and runs compiled new modules run
+    after run (a forms-assembly curl2d run compiled one more on each of its first six runs).
+    Call it on a new mesh, before any form or expression on it exists: a form hashes its
+    domains when it is made (compile_form makes such a form again)."""
+    domain = msh.ufl_domain() if hasattr(msh, "ufl_domain") else msh
+    sub = getattr(domain.ufl_coordinate_element(), "_sub_element", None)
+    if sub is None or sub.variant() is not None:
+        return False
+    domain._ufl_coordinate_element = ufl.VectorElement(ufl.FiniteElement(
+        sub.family(), sub.cell(), sub.degree(), sub.quadrature_scheme(), variant="equispaced"))
+    return True
+
+
+def _settled(form_or_expr) -> bool:
+    """equispaced_coordinates on every domain of a form or expression; True if one changed."""
+    if isinstance(form_or_expr, ufl.Form):
+        terminals = form_or_expr.arguments() + form_or_expr.coefficients()
+        domains = list(form_or_expr.ufl_domains()) + [
+            t.ufl_function_space().ufl_domain() for t in terminals]
+    else:
+        domains = ufl.domain.extract_domains(form_or_expr)
+    changed = [equispaced_coordinates(d) for d in {id(d): d for d in domains if d}.values()]
+    return any(changed)
+
+
 def compile_form(form: ufl.Form) -> fem.FormMetaClass:
     """`fem.form(form)` with `jit_params`, waiting for a concurrent compilation of the same form
-    (JIT_TIMEOUT)."""
+    (JIT_TIMEOUT); its domains' coordinate elements settled first (equispaced_coordinates: the
+    form is made again from its integrals where that changed one, so that it hashes the domain
+    as it now is)."""
+    if _settled(form):
+        form = ufl.Form(form.integrals())
     return with_portable_fallback(lambda params: fem.form(form, jit_params=params))
 
 
@@ -255,6 +290,7 @@ def compile_expression(expr: ufl.core.expr.Expr, points: np.ndarray) -> Compiled
     from dolfinx import jit
     from ffcx.naming import compute_signature
 
+    _settled(expr)
     params = jit.get_parameters()
     key = compute_signature([(expr, points)], f"fem-dual-{_MEMO_FORMAT};{ufl.__version__};"
                             f"{sorted((k, str(v)) for k, v in params.items())};{jit_flags()}")

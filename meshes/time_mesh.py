@@ -12,6 +12,8 @@ import numpy as np
 from dolfinx import mesh
 from mpi4py import MPI
 
+from fem_dual.compat import equispaced_coordinates
+
 __all__ = ["START", "END", "SlabMesh", "slab_mesh"]
 
 START = 1  # tag of the vertex s = 0, where the initial conditions enter the action
@@ -40,6 +42,7 @@ def slab_mesh(comm: MPI.Comm, cells: int) -> SlabMesh:
         The mesh and the tags START (s = 0) and END (s = 1) on its boundary vertices.
     """
     msh = mesh.create_unit_interval(comm, cells, ghost_mode=mesh.GhostMode.shared_facet)
+    equispaced_coordinates(msh)  # (stable signatures of the forms on it)
     msh.topology.create_connectivity(0, 1)
     start = mesh.locate_entities_boundary(msh, 0, lambda x: np.isclose(x[0], 0.0))
     end = mesh.locate_entities_boundary(msh, 0, lambda x: np.isclose(x[0], 1.0))

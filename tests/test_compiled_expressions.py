@@ -211,3 +211,37 @@ def test_a_compiler_that_always_fails_ends_the_run_in_one_line(tmp_path):
     last = done.stderr.strip().splitlines()[-1]
     assert last.startswith(f"fem-dual: error: the C compiler ({fake}) failed")
     assert "Traceback" not in done.stderr
+
+
+def _form_signature_after(compile_first: bool, cache_dir: Path, monkeypatch) -> str:
+    """The signature FFCx compiles a form on a new interval mesh under (its module's key), after
+    another form on the same mesh was compiled (a cache miss, `compile_first`) or not."""
+    msh = mesh.create_unit_interval(MPI.COMM_SELF, 2)
+    V = fem.FunctionSpace(msh, ("Lagrange", 2))
+    u, w, c = ufl.TrialFunction(V), ufl.TestFunction(V), fem.Constant(msh, 2.0)
+    first, second = u * w * ufl.dx, c * u.dx(0) * w.dx(0) * ufl.dx  # both made before compiling
+    monkeypatch.setattr(compat, "jit_params", lambda: {"cache_dir": str(cache_dir),
+                                                       "cffi_extra_compile_args": ["-O0"]})
+    seen = []
+    compile_jit = jit.ffcx_jit
+
+    def recording(comm, ufl_object, *args, **kwargs):
+        if isinstance(ufl_object, ufl.Form):
+            seen.append(ufl_object.signature())
+        return compile_jit(comm, ufl_object, *args, **kwargs)
+
+    monkeypatch.setattr(fem.forms.jit, "ffcx_jit", recording)
+    if compile_first:
+        compat.compile_form(first)
+    compat.compile_form(second)
+    return seen[-1]
+
+
+def test_a_forms_key_does_not_depend_on_what_the_process_compiled_before(tmp_path, monkeypatch):
+    """FFCx gives a mesh's coordinate element equispaced points in place when it compiles (not
+    when it finds the module): a form's signature, and so its module, must not depend on
+    whether another form on the mesh was compiled before it in the process (else runs compile
+    new modules run after run)."""
+    alone = _form_signature_after(False, tmp_path / "alone", monkeypatch)
+    after = _form_signature_after(True, tmp_path / "after", monkeypatch)
+    assert alone == after

@@ -35,7 +35,7 @@ from dolfinx import fem, mesh
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from fem_dual.compat import constant
+from fem_dual.compat import constant, equispaced_coordinates
 from fem_dual.continua.parameters import check_fields
 from fem_dual.continua.system import SpatialSystem
 from fem_dual.errors import InputError
@@ -97,6 +97,7 @@ class BeckColumn:
     def __init__(self, params: BeckParameters = BeckParameters(), comm: MPI.Comm = MPI.COMM_WORLD):
         self.params = params
         self.msh = mesh.create_interval(comm, params.elements, [0.0, params.L])
+        equispaced_coordinates(self.msh)  # (stable signatures: fem_dual.compat)
         element = ufl.FiniteElement("Lagrange", self.msh.ufl_cell(), params.degree)
         self.W = fem.FunctionSpace(self.msh, ufl.MixedElement([element, element]))
         self.constants = {name: constant(self.msh, getattr(params, name))

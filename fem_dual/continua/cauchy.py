@@ -46,7 +46,7 @@ import ufl
 from dolfinx import fem, mesh
 from mpi4py import MPI
 
-from fem_dual.compat import constant
+from fem_dual.compat import constant, equispaced_coordinates
 from fem_dual.continua.parameters import check_fields
 from fem_dual.continua.spectrum import SpectrumCheck, spectrum_check
 from fem_dual.continua.system import SpatialSystem
@@ -127,6 +127,7 @@ class CauchyElasticity:
         self.params = params
         n = params.elements
         self.msh = mesh.create_unit_square(comm, n, n)
+        equispaced_coordinates(self.msh)  # (stable signatures: fem_dual.compat)
         self.V = fem.FunctionSpace(self.msh, ufl.VectorElement("Lagrange", self.msh.ufl_cell(),
                                                                params.degree))
         self.C = constant(self.msh, elasticity_matrix(params.lam, params.mu, params.delta))

@@ -16,7 +16,8 @@ import numpy as np
 import ufl
 from dolfinx import fem
 
-from fem_dual.compat import constant, quiet_jit_logging, with_portable_fallback
+from fem_dual.compat import (constant, equispaced_coordinates, quiet_jit_logging,
+                             with_portable_fallback)
 from fem_dual.errors import InputError
 from fem_dual.expression import parse_force
 from fem_dual.continua.dofs import leaf_spaces
@@ -74,6 +75,7 @@ def interpolate_fields(V: fem.FunctionSpace, texts: Sequence[str],
         raise InputError(f"initial field: {count} expression(s) for {len(leaves)} field "
                          "components; give one per component")
     parameters = dict(parameters or {})
+    equispaced_coordinates(V.mesh)  # (the expressions' signatures: fem_dual.compat)
     u = fem.Function(V)
     for leaf, text in zip(leaves, texts):
         value = field_expression(text, V.mesh, parameters)

@@ -36,10 +36,12 @@ class CompiledForce:
         from dolfinx import fem, mesh
         from mpi4py import MPI
 
-        from fem_dual.compat import CellPointEvaluator, constant, quiet_jit_logging, vector_space
+        from fem_dual.compat import (CellPointEvaluator, constant, equispaced_coordinates,
+                                     quiet_jit_logging, vector_space)
 
         n = scene.n
         msh = mesh.create_unit_interval(MPI.COMM_SELF, 1)
+        equispaced_coordinates(msh)  # (stable signatures: fem_dual.compat)
         self.x = fem.Function(vector_space(msh, 0, n, "DG"))
         self.c = {k: constant(msh, v) for k, v in scene.constants().items()}
         force = ufl.as_vector([scene.forms.force(self.x, self.c)[i] for i in range(n)])
