@@ -17,6 +17,30 @@ from fem_dual import jit_lock
 
 jit_lock.install()  # a compilation that a killed process left behind is redone, not waited for
 
+
+def _direct_value_numbering() -> None:
+    """FFCx 0.5 numbers the scalar values of an expression graph by finding each operand's
+    node with a scan that compares it with every node (UFL equality: quadratic in the graph):
+    about 40 % of compiling the slab problems' expressions, more than the C compiler. The
+    graph's own map from expression to node (unique nodes, numbered as they were added) gives
+    the same node directly; an expression it lacks takes the scan."""
+    from ffcx.ir.analysis import valuenumbering
+
+    numberer = valuenumbering.ValueNumberer
+    if getattr(numberer, "_fem_dual_direct", False):
+        return
+    scan = numberer.get_node_symbols
+
+    def get_node_symbols(self, expr):
+        index = getattr(self.G, "e2i", {}).get(expr)
+        return type(self)._fem_dual_scan(self, expr) if index is None else self.V_symbols[index]
+
+    numberer.get_node_symbols = get_node_symbols
+    numberer._fem_dual_direct, numberer._fem_dual_scan = True, scan
+
+
+_direct_value_numbering()
+
 __all__ = ["function_space", "quiet_jit_logging", "CellPointEvaluator", "CompiledExpression",
            "compile_expression", "compile_form", "equispaced_coordinates",
            "vector_space", "vector_space_dg1", "constant", "destroy_petsc",

@@ -245,3 +245,25 @@ def test_a_forms_key_does_not_depend_on_what_the_process_compiled_before(tmp_pat
     alone = _form_signature_after(False, tmp_path / "alone", monkeypatch)
     after = _form_signature_after(True, tmp_path / "after", monkeypatch)
     assert alone == after
+
+
+def test_the_direct_value_numbering_generates_the_code_of_the_scan(monkeypatch):
+    """FFCx's value numbering finds operands through the graph's map (fem_dual.compat), not its
+    quadratic scan: the generated C is the same character for character."""
+    from ffcx.compiler import compile_ufl_objects
+    from ffcx.ir.analysis import valuenumbering
+    from ffcx.parameters import get_parameters
+
+    density, u, _ = _expression(2.0, 1.0, power=5)
+    expr = ufl.as_vector([density, density * u, ufl.sin(density) * ufl.exp(u), density ** 2])
+    numberer = valuenumbering.ValueNumberer
+    scan, scanned = numberer._fem_dual_scan, []
+    monkeypatch.setattr(numberer, "_fem_dual_scan", lambda *a: scanned.append(a) or scan(*a))
+
+    def code() -> str:
+        return compile_ufl_objects([(expr, POINTS)], prefix="x", parameters=get_parameters())[1]
+
+    direct = code()
+    assert numberer._fem_dual_direct and not scanned  # (no operand needed the scan)
+    monkeypatch.setattr(numberer, "get_node_symbols", scan)
+    assert code() == direct
