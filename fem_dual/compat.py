@@ -275,24 +275,32 @@ def equispaced_coordinates(msh) -> bool:
     return True
 
 
-def _settled(form_or_expr) -> bool:
-    """equispaced_coordinates on every domain of a form or expression; True if one changed."""
+def _settled(form_or_expr) -> None:
+    """equispaced_coordinates on every domain of a form or expression."""
     if isinstance(form_or_expr, ufl.Form):
         terminals = form_or_expr.arguments() + form_or_expr.coefficients()
         domains = list(form_or_expr.ufl_domains()) + [
             t.ufl_function_space().ufl_domain() for t in terminals]
     else:
         domains = ufl.domain.extract_domains(form_or_expr)
-    changed = [equispaced_coordinates(d) for d in {id(d): d for d in domains if d}.values()]
-    return any(changed)
+    for domain in {id(d): d for d in domains if d}.values():
+        equispaced_coordinates(domain)
+
+
+def _analysed_unsettled(form: ufl.Form) -> bool:
+    """Whether `form` numbered its domains (for its signature) before one was settled: the
+    numbering keeps them under their former hash."""
+    numbering = getattr(form, "_domain_numbering", None)
+    return numbering is not None and any(d not in numbering for d in form.ufl_domains())
 
 
 def compile_form(form: ufl.Form) -> fem.FormMetaClass:
     """`fem.form(form)` with `jit_params`, waiting for a concurrent compilation of the same form
-    (JIT_TIMEOUT); its domains' coordinate elements settled first (equispaced_coordinates: the
-    form is made again from its integrals where that changed one, so that it hashes the domain
-    as it now is)."""
-    if _settled(form):
+    (JIT_TIMEOUT); its domains' coordinate elements settled first (equispaced_coordinates: a
+    form that numbered its domains before, for its signature, is made again from its
+    integrals)."""
+    _settled(form)
+    if _analysed_unsettled(form):
         form = ufl.Form(form.integrals())
     return with_portable_fallback(lambda params: fem.form(form, jit_params=params))
 

@@ -213,9 +213,11 @@ def test_a_compiler_that_always_fails_ends_the_run_in_one_line(tmp_path):
     assert "Traceback" not in done.stderr
 
 
-def _form_signature_after(compile_first: bool, cache_dir: Path, monkeypatch) -> str:
+def _form_signature_after(compile_first: bool, cache_dir: Path, monkeypatch,
+                          signed_early: bool = False) -> str:
     """The signature FFCx compiles a form on a new interval mesh under (its module's key), after
-    another form on the same mesh was compiled (a cache miss, `compile_first`) or not."""
+    another form on the same mesh was compiled (a cache miss, `compile_first`) or not, its own
+    signature asked for before anything was compiled (`signed_early`) or not."""
     msh = mesh.create_unit_interval(MPI.COMM_SELF, 2)
     V = fem.FunctionSpace(msh, ("Lagrange", 2))
     u, w, c = ufl.TrialFunction(V), ufl.TestFunction(V), fem.Constant(msh, 2.0)
@@ -231,6 +233,8 @@ def _form_signature_after(compile_first: bool, cache_dir: Path, monkeypatch) -> 
         return compile_jit(comm, ufl_object, *args, **kwargs)
 
     monkeypatch.setattr(fem.forms.jit, "ffcx_jit", recording)
+    if signed_early:
+        second.signature()
     if compile_first:
         compat.compile_form(first)
     compat.compile_form(second)
@@ -244,7 +248,8 @@ def test_a_forms_key_does_not_depend_on_what_the_process_compiled_before(tmp_pat
     new modules run after run)."""
     alone = _form_signature_after(False, tmp_path / "alone", monkeypatch)
     after = _form_signature_after(True, tmp_path / "after", monkeypatch)
-    assert alone == after
+    signed = _form_signature_after(True, tmp_path / "signed", monkeypatch, signed_early=True)
+    assert alone == after == signed
 
 
 def test_the_direct_value_numbering_generates_the_code_of_the_scan(monkeypatch):
