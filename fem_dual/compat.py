@@ -261,10 +261,9 @@ def equispaced_coordinates(msh) -> bool:
     FFCx gives it when it compiles a form on it: Lagrange with equispaced points (the same map
     for degree 1); True if it had another. FFCx sets it in place, and only when it compiles (not
     when it finds the module in its cache), and the element is part of every later form's and
-    expression's signature on that mesh: without this, which modules a process looked up
-    depended on whether an earlier one had to be compiled, and runs compiled new modules run
-    after run (a forms-assembly curl2d run compiled one more on each of its first six runs).
-    Call it on a new mesh, before any form or expression on it exists: a form hashes its
+    expression's signature on that mesh: without this, which modules a process looks up would
+    depend on whether an earlier one had to be compiled, and identical runs would compile new
+    modules. Call it on a new mesh, before any form or expression on it exists: a form hashes its
     domains when it is made (compile_form makes such a form again)."""
     domain = msh.ufl_domain() if hasattr(msh, "ufl_domain") else msh
     sub = getattr(domain.ufl_coordinate_element(), "_sub_element", None)
