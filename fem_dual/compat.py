@@ -256,29 +256,29 @@ def with_portable_fallback(compile_with: Callable[[Dict[str, Any]], Any]) -> Any
     return compile_with(jit_params())
 
 
-def equispaced_coordinates(msh) -> bool:
+def equispaced_coordinates(msh) -> None:
     """Give the UFL domain of `msh` (a DOLFINx mesh or its `ufl.Mesh`) the coordinate element
     FFCx gives it when it compiles a form on it: Lagrange with equispaced points (the same map
-    for degree 1); True if it had another. FFCx sets it in place, and only when it compiles (not
-    when it finds the module in its cache), and the element is part of every later form's and
-    expression's signature on that mesh: without this, which modules a process looks up would
-    depend on whether an earlier one had to be compiled, and identical runs would compile new
-    modules. Call it on a new mesh, before any form or expression on it exists: a form hashes its
-    domains when it is made (compile_form makes such a form again)."""
+    for degree 1). FFCx sets it in place, and only when it compiles (not when it finds the
+    module in its cache), and the element is part of every later form's and expression's
+    signature on that mesh: without this, which modules a process looks up would depend on
+    whether an earlier one had to be compiled, and identical runs would compile new modules.
+    Call it on a new mesh, before any form on it has numbered its domains for a signature (such
+    a form keeps them under their former hash; compile_form makes it again)."""
     domain = msh.ufl_domain() if hasattr(msh, "ufl_domain") else msh
     sub = getattr(domain.ufl_coordinate_element(), "_sub_element", None)
-    if sub is None or sub.variant() is not None:
-        return False
-    domain._ufl_coordinate_element = ufl.VectorElement(ufl.FiniteElement(
-        sub.family(), sub.cell(), sub.degree(), sub.quadrature_scheme(), variant="equispaced"))
-    return True
+    if sub is not None and sub.variant() is None:
+        domain._ufl_coordinate_element = ufl.VectorElement(ufl.FiniteElement(
+            sub.family(), sub.cell(), sub.degree(), sub.quadrature_scheme(),
+            variant="equispaced"))
 
 
 def _settled(form_or_expr) -> None:
-    """equispaced_coordinates on every domain of a form or expression."""
+    """equispaced_coordinates on every domain of a form or expression (a form's taken from its
+    integrals and arguments, so that this does not number them: _analysed_unsettled)."""
     if isinstance(form_or_expr, ufl.Form):
         terminals = form_or_expr.arguments() + form_or_expr.coefficients()
-        domains = list(form_or_expr.ufl_domains()) + [
+        domains = [itg.ufl_domain() for itg in form_or_expr.integrals()] + [
             t.ufl_function_space().ufl_domain() for t in terminals]
     else:
         domains = ufl.domain.extract_domains(form_or_expr)
