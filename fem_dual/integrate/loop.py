@@ -292,8 +292,8 @@ class _Run:
         return SolveError(
             f"rtol={config.rtol:g} would take at least {predicted:,} slabs of {typical:.3g} to "
             f"reach T = {config.T:g}, beyond the budget of {config.max_slabs:,} "
-            f"(--max-slabs); stopped at t = {t0:.6g} after {len(lengths)} slabs: loosen "
-            "--rtol, shorten --T, or raise --max-slabs", slab=len(lengths))
+            f"(--max-slabs); stopped at t = {t0:.6g} after {len(lengths)} slabs"
+            f"{_fast_modes(self.sim.scene, self.rate) or _BUDGET_ADVICE}", slab=len(lengths))
 
     def refusal(self, verdict: Verdict, t0: float, dt: float) -> SolveError:
         """The failure that ends the run at a slab that is neither accepted nor retried."""
@@ -453,6 +453,30 @@ def _start_rate(scene, x0: np.ndarray, v0: np.ndarray) -> float:
         F, d = np.asarray(scene.force_numpy(x0), dtype=float), scene.mass_diagonal()
         a0 = F / d if d is not None else np.linalg.solve(scene.mass_matrix(), F)
     return motion_rate(x0, v0, a0)
+
+
+FAST_MODES = 100.0  # modes this many times faster than the slowest: a start state's, not the
+# motion's own (a continuum's start fields excite the fastest modes of its mesh)
+
+
+def _fast_modes(scene, rate: Optional[float]) -> str:
+    """Why a linear run's slabs are short, where it is the start state's fast modes: the slabs
+    follow every mode the start excites above the tolerance (`rate`, the fastest of them), and
+    those are FAST_MODES times the slowest mode or faster; "" otherwise (nonlinear, sparse: no
+    spectrum)."""
+    if rate is None or not scene.linear or scene.sparse:
+        return ""
+    speeds = np.abs(scene.spectrum[0])
+    slowest = float(speeds[speeds > 0].min(initial=np.inf))
+    if not rate >= FAST_MODES * slowest:
+        return ""
+    return (f", since the start state puts more than the tolerance into modes up to "
+            f"|lambda| = {rate:.3g} ({rate / slowest:.3g} times the slowest), which every slab "
+            "must follow (a start field's mismatch with a mesh excites its fastest modes): use a "
+            "coarser mesh or a start state with less in those modes, or raise --max-slabs")
+
+
+_BUDGET_ADVICE = ": loosen --rtol, shorten --T, or raise --max-slabs"
 
 
 def _advice(config: RunConfig) -> str:

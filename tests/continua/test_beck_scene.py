@@ -91,6 +91,24 @@ def test_start_fields_from_expressions_of_x():
     assert w.max() == pytest.approx(0.01, rel=1e-6)  # the tip of 0.01 x^2 (w in P2: exact)
 
 
+def test_start_fields_that_excite_the_fastest_modes_are_named_as_the_cost(capsys):
+    """The fields of x put more than 1e-6 of the motion into the mesh's fastest modes (10
+    elements: 16,394 slabs of 1.2e-4 at P = 10, T = 2), which every slab must follow: the
+    budget's refusal says so (exit 3, one line), instead of advising a looser --rtol alone."""
+    from fem_dual.cli import main
+
+    args = ["run", "beck", "--param", "P=10", "--param", "elements=10", "--u0",
+            "0.01*x**2, 0.02*x", "--v0", "0, 0", "--T", "2", "--rtol", "1e-6"]
+    assert main(args) == 3
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "beyond the budget" in err
+    assert "into modes up to |lambda|" in err and "coarser mesh" in err
+    rate = float(err.split("|lambda| = ")[1].split(" ")[0])
+    scene = RunConfig.create("beck", {"P": "10", "elements": "10"}).scene
+    speeds = np.abs(scene.spectrum[0])
+    assert speeds.max() / 2 <= rate <= speeds.max() * (1 + 1e-9)  # (the mesh's fastest)
+
+
 @pytest.mark.parametrize("u0, words", [("0.01*x**2", "expected 2"),
                                        ("0.01*x**2, 0.02*q", "q"),
                                        ("0.01*x**2, 0.02*x, 1", "expected 2")])

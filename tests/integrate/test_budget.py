@@ -24,6 +24,7 @@ def test_a_run_beyond_the_budget_stops_with_the_figure(capsys):
     captured = capsys.readouterr()
     assert captured.err.count("\n") == 1
     assert _predicted_slabs(captured.err) in range(4_000, 12_001) and "--max-slabs" in captured.err
+    assert "loosen --rtol" in captured.err and "modes up to" not in captured.err  # (one mode)
     data = json.loads(captured.out)
     assert data["status"] == "failed"
     assert BUDGET_WATCH <= len(data["slab_lengths"]) <= 2 * BUDGET_WATCH
