@@ -290,8 +290,9 @@ class _Run:
         if predicted <= config.max_slabs:
             return None
         return SolveError(
-            f"rtol={config.rtol:g} would take at least {predicted:,} slabs of {typical:.3g} to "
-            f"reach T = {config.T:g}, beyond the budget of {config.max_slabs:,} "
+            f"rtol={config.rtol:g} would take {predicted:,} slabs at the length of the last "
+            f"ones ({typical:.3g}) to reach T = {config.T:g}, beyond the budget of "
+            f"{config.max_slabs:,} "
             f"(--max-slabs); stopped at t = {t0:.6g} after {len(lengths)} slabs"
             f"{_fast_modes(self.sim.scene, self.rate) or _BUDGET_ADVICE}", slab=len(lengths))
 

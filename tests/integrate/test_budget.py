@@ -13,7 +13,7 @@ FAST = ["run", "force", "--F", "-100000000.0*x", "--x0", "1", "--T", "2", "--rto
 
 
 def _predicted_slabs(message: str) -> int:
-    figure = message.split("would take at least ")[1].split(" slabs")[0]
+    figure = message.split("would take ")[1].split(" slabs at the length")[0]
     return int(figure.replace(",", ""))
 
 
