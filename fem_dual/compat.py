@@ -14,6 +14,7 @@ from dolfinx import cpp as _cpp
 from dolfinx import fem
 
 from fem_dual import jit_lock
+from fem_dual.jit_header import discard_precompiled, include_flags
 
 jit_lock.install()  # a compilation that a killed process left behind is redone, not waited for
 
@@ -199,15 +200,20 @@ _PORTABLE: List[bool] = [False]  # the compiler refused the processor's flags: D
 def jit_flags() -> List[str]:
     """The C compiler's flags for FFCx's kernels: a user's own (`cffi_extra_compile_args` of
     DOLFINx's JIT parameter files, where they differ from its default -O2 -g0); else, where
-    the processor can be named, `processor_flags`; else (or where the compiler refused those,
+    the processor can be named, `processor_flags` and the precompiled Python header
+    (fem_dual.jit_header); else (or where the compiler refused those,
     `with_portable_fallback`) DOLFINx's -O2 -g0."""
     from dolfinx import jit
 
     default = list(jit.DOLFINX_DEFAULT_JIT_PARAMETERS["cffi_extra_compile_args"][0])
-    asked = list(jit.get_parameters().get("cffi_extra_compile_args") or default)
+    parameters = jit.get_parameters()
+    asked = list(parameters.get("cffi_extra_compile_args") or default)
     if asked != default:
         return asked
-    return default if _PORTABLE[0] else (processor_flags() or default)
+    own = None if _PORTABLE[0] else processor_flags()
+    if own is None:
+        return default
+    return own + include_flags(own, parameters["cache_dir"])
 
 
 @functools.lru_cache(maxsize=1)
@@ -243,15 +249,25 @@ def compiler_failed(exc: BaseException) -> bool:
 
 
 def with_portable_fallback(compile_with: Callable[[Dict[str, Any]], Any]) -> Any:
-    """compile_with(jit_params()); where the C compiler fails with the processor's flags (one
-    that rejects -march=native), once more with DOLFINx's own, which every later compilation
-    of the process then takes. Other failures are raised as they are."""
-    flags = jit_flags()
-    try:
-        return compile_with(jit_params())
-    except Exception as exc:  # noqa: BLE001 -- a compiler failure is told by its type or text
-        if not compiler_failed(exc) or flags != processor_flags():
-            raise
+    """compile_with(jit_params()); where the C compiler fails with the processor's flags, once
+    more without the precompiled Python header if there was one (a damaged file, which gcc
+    refuses: fem_dual.jit_header), then (a compiler that rejects -march=native) with
+    DOLFINx's own flags, which every later compilation of the process then takes. Other
+    failures are raised as they are."""
+    own, flags = processor_flags(), jit_flags()
+
+    def attempt():
+        try:
+            return True, compile_with(jit_params())
+        except Exception as exc:  # noqa: BLE001 -- a compiler failure: its type or text
+            if not compiler_failed(exc) or own is None or flags[:len(own)] != own:
+                raise
+            return False, None
+    done, result = attempt()
+    if not done and discard_precompiled(flags):
+        done, result = attempt()
+    if done:
+        return result
     _PORTABLE[0] = True
     return compile_with(jit_params())
 
