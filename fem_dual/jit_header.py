@@ -3,12 +3,14 @@
 Every module FFCx compiles is C that cffi wraps for Python: it starts by including Python.h
 (pyconfig.h, then Py_LIMITED_API, then Python.h), which gcc parses afresh for each module:
 0.09 s of the 0.2-0.3 s a small kernel's module takes to compile. fem-dual passes
-`-include <cache>/fem-dual-python-h/<key>/cffi_python.h`, a header with the same three lines,
-and builds its precompiled form (`cffi_python.h.gch`, gcc's) beside it once per cache, compiler
-and set of flags. gcc takes the precompiled form where it is valid for the compilation and the
-text otherwise (another compiler, another gcc, a damaged file): the same declarations either way,
-and the same object code (checked on 33 modules of curl3d, orbits and continua). The guards of
-pyconfig.h and Python.h then skip the module's own includes.
+`-include <cache>/fem-dual-python-h/<key>/cffi_python.h`, a copy of fem_dual/cffi_python.h (the
+same lines), and builds its precompiled form (`cffi_python.h.gch`, gcc's) beside it once per
+cache, compiler and set of flags. gcc takes the precompiled form where it is valid for the
+compilation and the text otherwise (another compiler, another gcc): the same declarations either
+way, and the same object code (checked on 33 modules of curl3d, orbits and continua). The guards
+of pyconfig.h and Python.h then skip the module's own includes. A truncated precompiled form
+makes gcc fail instead: fem_dual.compat.with_portable_fallback then removes it
+(`discard_precompiled`) and compiles again with the text.
 """
 from __future__ import annotations
 
@@ -24,14 +26,7 @@ from typing import List, Sequence
 
 __all__ = ["include_flags", "discard_precompiled", "HEADER"]
 
-# cffi's preamble (cffi/_cffi_include.h, on a platform where it uses the limited API)
-HEADER = """/* fem-dual: what cffi's modules include first, to be precompiled (fem_dual.jit_header) */
-#include <pyconfig.h>
-#if !defined(Py_DEBUG) && !defined(Py_TRACE_REFS) && !defined(Py_REF_DEBUG)
-#  define Py_LIMITED_API
-#endif
-#include <Python.h>
-"""
+HEADER = Path(__file__).with_name("cffi_python.h")  # cffi's preamble, as a header file
 BUILD_SECONDS = 120  # a precompilation that takes longer is given up (the text still serves)
 
 
@@ -51,14 +46,18 @@ def _include(flags: tuple, cache_dir: str) -> tuple:
         return ()
     if not getattr(recompiler, "USE_LIMITED_API", False):
         return ()
+    try:
+        text = HEADER.read_bytes()
+    except OSError:  # (an install without the package's data)
+        return ()
     command = _compiler() + [f"-I{sysconfig.get_paths()['include']}", *flags]
-    key = hashlib.sha256("\0".join(command + [HEADER]).encode()).hexdigest()[:16]
+    key = hashlib.sha256("\0".join(command).encode() + text).hexdigest()[:16]
     folder = Path(cache_dir) / "fem-dual-python-h" / key
     header = folder / "cffi_python.h"
     try:
         if not header.exists():
             folder.mkdir(parents=True, exist_ok=True)
-            _write(header, HEADER.encode())
+            _write(header, text)
     except OSError:
         return ()
     precompiled = folder / "cffi_python.h.gch"
