@@ -9,7 +9,7 @@ ROOT = Path(__file__).resolve().parents[1]
 # Lower layers first; a module may import its own layer's modules and any below. forms and
 # meshes are installed as fem_dual.forms and fem_dual.meshes.
 LAYERS = [
-    {"errors", "quiet", "choices", "faults", "mpi", "compat", "jit_lock"},
+    {"errors", "quiet", "choices", "faults", "mpi", "compat", "jit_lock", "jit_header"},
     {"forms", "meshes", "expression", "reference", "output", "petsc_check", "native", "modes"},
     {"scenes"},
     {"slab", "continua"},
