@@ -248,6 +248,13 @@ def compiler_failed(exc: BaseException) -> bool:
             or str(exc).startswith("Failed just-in-time compilation"))
 
 
+def _cache_dir():
+    """FFCx's cache folder, DOLFINx's parameter (where the JIT compiles)."""
+    from dolfinx import jit
+
+    return jit.get_parameters()["cache_dir"]
+
+
 def with_portable_fallback(compile_with: Callable[[Dict[str, Any]], Any]) -> Any:
     """compile_with(jit_params()); where the C compiler fails with the processor's flags, once
     more without the precompiled Python header if there was one (a damaged file, which gcc
@@ -264,7 +271,7 @@ def with_portable_fallback(compile_with: Callable[[Dict[str, Any]], Any]) -> Any
                 raise
             return False, None
     done, result = attempt()
-    if not done and discard_precompiled(flags):
+    if not done and discard_precompiled(flags, _cache_dir()):
         done, result = attempt()
     if done:
         return result

@@ -3,14 +3,15 @@
 Every module FFCx compiles is C that cffi wraps for Python: it starts by including Python.h
 (pyconfig.h, then Py_LIMITED_API, then Python.h), which gcc parses afresh for each module:
 0.09 s of the 0.2-0.3 s a small kernel's module takes to compile. fem-dual passes
-`-include <cache>/fem-dual-python-h/<key>/cffi_python.h`, a copy of fem_dual/cffi_python.h (the
-same lines), and builds its precompiled form (`cffi_python.h.gch`, gcc's) beside it once per
-cache, compiler and set of flags. gcc takes the precompiled form where it is valid for the
-compilation and the text otherwise (another compiler, another gcc): the same declarations either
-way, and the same object code (checked on 33 modules of curl3d, orbits and continua). The guards
-of pyconfig.h and Python.h then skip the module's own includes. A truncated precompiled form
-makes gcc fail instead: fem_dual.compat.with_portable_fallback then removes it
-(`discard_precompiled`) and compiles again with the text.
+`-include fem-dual-python-h/<key>/cffi_python.h` (relative to FFCx's cache, where cffi compiles),
+a copy of fem_dual/cffi_python.h (the same lines), and builds its precompiled form
+(`cffi_python.h.gch`, gcc's) beside it once per cache, compiler and set of flags. gcc takes the
+precompiled form where it is valid for the compilation and the text otherwise (another
+compiler): the same declarations either way, and the same object code (checked on 33 modules of
+curl3d, orbits and continua). The guards of pyconfig.h and Python.h then skip the module's own
+includes. A truncated precompiled form makes gcc fail instead:
+fem_dual.compat.with_portable_fallback then removes it (`discard_precompiled`) and compiles
+again with the text; a header whose text differs from the package's is written again.
 """
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ import functools
 import hashlib
 import os
 import shlex
+import shutil
 import subprocess
 import sysconfig
 import tempfile
@@ -27,6 +29,7 @@ from typing import List, Sequence
 __all__ = ["include_flags", "discard_precompiled", "HEADER"]
 
 HEADER = Path(__file__).with_name("cffi_python.h")  # cffi's preamble, as a header file
+FOLDER = "fem-dual-python-h"  # in FFCx's cache
 BUILD_SECONDS = 120  # a precompilation that takes longer is given up (the text still serves)
 
 
@@ -51,34 +54,60 @@ def _include(flags: tuple, cache_dir: str) -> tuple:
     except OSError:  # (an install without the package's data)
         return ()
     command = _compiler() + [f"-I{sysconfig.get_paths()['include']}", *flags]
-    key = hashlib.sha256("\0".join(command).encode() + text).hexdigest()[:16]
-    folder = Path(cache_dir) / "fem-dual-python-h" / key
-    header = folder / "cffi_python.h"
+    key = hashlib.sha256("\0".join(command + _identity(command[0])).encode() + text)
+    # relative to the cache, where cffi compiles (its build changes into the folder it is
+    # given, FFCx's cache): the path is part of the flags, hence of FFCx's module names, and
+    # a cache moved elsewhere keeps them
+    relative = f"{FOLDER}/{key.hexdigest()[:16]}/cffi_python.h"
+    header = Path(cache_dir) / relative
     try:
-        if not header.exists():
-            folder.mkdir(parents=True, exist_ok=True)
+        if not (header.exists() and header.read_bytes() == text):  # (damaged: written again)
+            header.parent.mkdir(parents=True, exist_ok=True)
             _write(header, text)
     except OSError:
         return ()
-    precompiled = folder / "cffi_python.h.gch"
-    if not precompiled.exists():
+    precompiled = header.with_name("cffi_python.h.gch")
+    if not _is_precompiled(precompiled):
         _precompile(command, header, precompiled)
-    return ("-include", str(header))
+    return ("-include", relative)
 
 
-def discard_precompiled(flags: Sequence[str]) -> bool:
-    """Remove the precompiled header that `flags` include (a damaged one, which gcc refuses
-    with an error instead of reading the text: a truncated file); whether `flags` include one
-    (the same answer on every rank, whichever removed the file). The text stays, so the same
-    flags compile with it."""
+def discard_precompiled(flags: Sequence[str], cache_dir) -> bool:
+    """Remove the precompiled header that `flags` include from `cache_dir` (a damaged one,
+    which gcc refuses with an error instead of reading the text: a truncated file); whether
+    `flags` include one (the same answer on every rank, whichever removed the file). The text
+    stays, so the same flags compile with it."""
     flags = list(flags)
     if "-include" not in flags[:-1]:
         return False
     try:
-        Path(flags[flags.index("-include") + 1] + ".gch").unlink()
+        (Path(cache_dir).expanduser() / (flags[flags.index("-include") + 1] + ".gch")).unlink()
     except OSError:
         pass
     return True
+
+
+def _identity(program: str) -> List[str]:
+    """The compiler's file, size and time (another gcc after an upgrade: another key, and a
+    precompiled header of its own)."""
+    found = shutil.which(program)
+    if found is None:
+        return [program]
+    try:
+        info = os.stat(found)
+    except OSError:
+        return [program]
+    return [os.path.realpath(found), str(info.st_size), str(info.st_mtime_ns)]
+
+
+def _is_precompiled(path: Path) -> bool:
+    """Whether `path` is a gcc precompiled header (its magic; a file cut short is caught by
+    gcc, and then removed: discard_precompiled)."""
+    try:
+        with open(path, "rb") as handle:
+            return handle.read(4) == b"gpch"
+    except OSError:
+        return False
 
 
 def _compiler() -> List[str]:
@@ -107,7 +136,8 @@ def _precompile(command: List[str], header: Path, target: Path) -> None:
         done = subprocess.run(command + ["-x", "c-header", str(header), "-o", tmp],
                               stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                               stderr=subprocess.DEVNULL, timeout=BUILD_SECONDS, check=False)
-        if done.returncode == 0 and os.path.getsize(tmp) > 0:
+        if done.returncode == 0 and _is_precompiled(Path(tmp)):
+            _readable(tmp)
             os.replace(tmp, target)
     except (OSError, subprocess.SubprocessError):
         pass
@@ -122,7 +152,16 @@ def _write(path: Path, data: bytes) -> None:
     try:
         with os.fdopen(fd, "wb") as handle:
             handle.write(data)
+        _readable(tmp)
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+
+
+def _readable(path: str) -> None:
+    """The mode a file made by open() would have (mkstemp makes them private): a cache shared
+    by users reads them, as it reads FFCx's modules."""
+    mask = os.umask(0)
+    os.umask(mask)
+    os.chmod(path, 0o666 & ~mask)

@@ -458,23 +458,25 @@ def _start_rate(scene, x0: np.ndarray, v0: np.ndarray) -> float:
 
 FAST_MODES = 100.0  # modes this many times faster than the slowest: a start state's, not the
 # motion's own (a continuum's start fields excite the fastest modes of its mesh)
+ZERO_SPEED = 1e-7  # speeds below this part of the fastest are round-off (a free body's)
 
 
 def _fast_modes(scene, rate: Optional[float]) -> str:
-    """Why a linear run's slabs are short, where it is the start state's fast modes: the slabs
-    follow every mode the start excites above the tolerance (`rate`, the fastest of them), and
-    those are FAST_MODES times the slowest mode or faster; "" otherwise (nonlinear, sparse: no
-    spectrum)."""
-    if rate is None or not scene.linear or scene.sparse:
+    """Why a continuum's slabs are short, where it is the start state's fast modes: the slabs
+    follow the modes the start excites (`rate`, the fastest of them), and those are FAST_MODES
+    times the slowest mode or faster; "" otherwise (particles, the sparse path: no modes at
+    hand)."""
+    if rate is None or not getattr(scene, "continuum", False) or scene.sparse:
         return ""
     speeds = np.abs(scene.spectrum[0])
-    slowest = float(speeds[speeds > 0].min(initial=np.inf))
+    speeds = speeds[speeds > ZERO_SPEED * speeds.max(initial=0.0)]
+    slowest = float(speeds.min(initial=np.inf))
     if not rate >= FAST_MODES * slowest:
         return ""
-    return (f", since the start state puts more than the tolerance into modes up to "
-            f"|lambda| = {rate:.3g} ({rate / slowest:.3g} times the slowest), which every slab "
-            "must follow (a start field's mismatch with a mesh excites its fastest modes): use a "
-            "coarser mesh or a start state with less in those modes, or raise --max-slabs")
+    return (f", since the start state excites modes up to |lambda| = {rate:.3g} "
+            f"({rate / slowest:.3g} times the slowest), which every slab must follow (a start "
+            "field's mismatch with the mesh excites its fastest modes): use a coarser mesh or a "
+            "start state with less in those modes, or raise --max-slabs")
 
 
 _BUDGET_ADVICE = ": loosen --rtol, shorten --T, or raise --max-slabs"

@@ -102,7 +102,7 @@ def test_start_fields_that_excite_the_fastest_modes_are_named_as_the_cost(capsys
     assert main(args) == 3
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "beyond the budget" in err
-    assert "into modes up to |lambda|" in err and "coarser mesh" in err
+    assert "excites modes up to |lambda|" in err and "coarser mesh" in err
     rate = float(err.split("|lambda| = ")[1].split(" ")[0])
     scene = RunConfig.create("beck", {"P": "10", "elements": "10"}).scene
     speeds = np.abs(scene.spectrum[0])

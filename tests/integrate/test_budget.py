@@ -31,6 +31,19 @@ def test_a_run_beyond_the_budget_stops_with_the_figure(capsys):
     assert np.isfinite(data["x"]).all()
 
 
+def test_particles_keep_the_advice_of_the_horizon(capsys):
+    """A free body's zero mode and a stiff spring on purpose: a particle scene has no mesh to
+    coarsen, and a shorter --T is what helps (T = 100 needs about 8,200 slabs at 1e-10)."""
+    free = ["run", "linear", "--param", "dofs=2", "--param", "K=1,-1,-1,1", "--x0", "1, 0",
+            "--v0", "0, 0", "--T", "30000", "--rtol", "1e-10"]
+    stiff = ["run", "linear", "--param", "dofs=2", "--param", "K=1,0,0,1e6", "--x0", "1, 1e-3",
+             "--v0", "0, 0", "--T", "100", "--rtol", "1e-10"]
+    for args in (free, stiff):
+        assert main(args) == 3
+        err = capsys.readouterr().err
+        assert "shorten --T" in err and "mesh" not in err, err
+
+
 def test_the_budget_is_the_users_to_raise():
     """(curl3d at 1e-10 on degree 2 takes 30 slabs.)"""
     with pytest.raises(SolveError, match="beyond the budget of 10 "):
