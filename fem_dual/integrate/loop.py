@@ -292,9 +292,8 @@ class _Run:
         return SolveError(
             f"rtol={config.rtol:g} would take {predicted:,} slabs at the length of the last "
             f"ones ({typical:.3g}) to reach T = {config.T:g}, beyond the budget of "
-            f"{config.max_slabs:,} "
-            f"(--max-slabs); stopped at t = {t0:.6g} after {len(lengths)} slabs"
-            f"{_fast_modes(self.sim.scene, self.rate) or _BUDGET_ADVICE}", slab=len(lengths))
+            f"{config.max_slabs:,} (--max-slabs); stopped at t = {t0:.6g} after {len(lengths)} "
+            f"slabs{_fast_modes(self.sim.scene, self.rate) or _BUDGET_ADVICE}", slab=len(lengths))
 
     def refusal(self, verdict: Verdict, t0: float, dt: float) -> SolveError:
         """The failure that ends the run at a slab that is neither accepted nor retried."""
