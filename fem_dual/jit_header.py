@@ -124,44 +124,37 @@ def _compiler() -> List[str]:
 
 
 def _precompile(command: List[str], header: Path, target: Path) -> None:
-    """Compile `header` into `target` (written under another name, then renamed: concurrent
-    processes each leave a whole file); a compiler that cannot (not gcc, a failure) leaves
-    none, silently."""
-    try:
-        fd, tmp = tempfile.mkstemp(dir=target.parent, suffix=".gch.tmp")
-        os.close(fd)
-    except OSError:
-        return
-    try:
+    """Compile `header` into `target`; a compiler that cannot (not gcc, a failure) leaves none,
+    silently."""
+    def build(tmp: str) -> bool:
         done = subprocess.run(command + ["-x", "c-header", str(header), "-o", tmp],
                               stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                               stderr=subprocess.DEVNULL, timeout=BUILD_SECONDS, check=False)
-        if done.returncode == 0 and _is_precompiled(Path(tmp)):
-            _readable(tmp)
-            os.replace(tmp, target)
+        return done.returncode == 0 and _is_precompiled(Path(tmp))
+    try:
+        _replace(target, build)
     except (OSError, subprocess.SubprocessError):
         pass
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
 
 
 def _write(path: Path, data: bytes) -> None:
-    """Write `path` whole, under another name first."""
+    """Write `path` whole (_replace)."""
+    _replace(path, lambda tmp: Path(tmp).write_bytes(data) == len(data))
+
+
+def _replace(path: Path, make) -> None:
+    """make(tmp) writes a file of another name beside `path` and says whether it is whole; if so
+    it is renamed over `path` (concurrent processes each leave a whole file) with the mode a
+    file made by open() has (mkstemp makes them private; a cache shared by users reads them,
+    as it reads FFCx's modules)."""
     fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+    os.close(fd)
     try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
-        _readable(tmp)
-        os.replace(tmp, path)
+        if make(tmp):
+            mask = os.umask(0)
+            os.umask(mask)
+            os.chmod(tmp, 0o666 & ~mask)
+            os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
-
-
-def _readable(path: str) -> None:
-    """The mode a file made by open() would have (mkstemp makes them private): a cache shared
-    by users reads them, as it reads FFCx's modules."""
-    mask = os.umask(0)
-    os.umask(mask)
-    os.chmod(path, 0o666 & ~mask)

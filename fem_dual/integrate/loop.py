@@ -465,7 +465,7 @@ def _fast_modes(scene, rate: Optional[float]) -> str:
     follow the modes the start excites (`rate`, the fastest of them), and those are FAST_MODES
     times the slowest mode or faster; "" otherwise (particles, the sparse path: no modes at
     hand)."""
-    if rate is None or not getattr(scene, "continuum", False) or scene.sparse:
+    if rate is None or not scene.continuum or scene.sparse:
         return ""
     speeds = np.abs(scene.spectrum[0])
     speeds = speeds[speeds > ZERO_SPEED * speeds.max(initial=0.0)]
