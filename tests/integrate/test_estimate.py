@@ -6,6 +6,7 @@ rtol = atol = 1e-13 (nonlinear scenes), which is why errors below about 1e-11 ar
 """
 import json
 import math
+import time
 
 import numpy as np
 import pytest
@@ -191,10 +192,25 @@ def test_json_carries_the_estimate(capsys):
     assert "estimated x_max" in capsys.readouterr().out
 
 
-def test_failed_attempts_count_in_the_run_time():
+def test_failed_attempts_count_in_the_run_time(monkeypatch):
+    """Each solve of the answer's slab (accepted or not) is made to last at least PAUSE:
+    solve_s holds them all, rejected attempts included (a bound that wall-clock noise cannot
+    break, unlike a comparison of two measured phases)."""
+    from fem_dual.integrate.simulation import Simulation
+    PAUSE, attempts, solve = 0.01, [], Simulation.solve_slab
+
+    def slowed(self, z0, t0, dt, start=None, counted=True):
+        if counted and start is None and self.with_dual:  # (the answer's slab)
+            attempts.append(t0)
+            time.sleep(PAUSE)
+        return solve(self, z0, t0, dt, start=start, counted=counted)
+
+    monkeypatch.setattr(Simulation, "solve_slab", slowed)
     r = run(RunConfig.create("curl3d", T=8.0, cells=2, degree=4))
     assert r.solver["rejected_slabs"] > 0
-    assert r.timings["solve_s"] >= r.timings["estimate_s"] > 0
+    assert len(attempts) >= r.slabs + r.solver["rejected_slabs"]
+    assert r.timings["solve_s"] >= PAUSE * len(attempts)
+    assert r.timings["estimate_s"] > 0
 
 
 # -- the machinery ------------------------------------------------------------------------------
