@@ -31,6 +31,12 @@ REFUSE_RELATIVE = 1e-3
 # run is refused (the local errors are controlled; growth of the motion can still amplify them).
 ACCEPT_GLOBAL = 10.0
 
+# A continuum run given neither --rtol nor --slabs takes this --rtol (the fraction the acceptance
+# rule of fixed slabs asks): a mesh's modes spread over decades, and slabs of one length either
+# follow the fastest the start state excites or fail at the first slab (beck by default: 1 slab
+# of 100 cells, halved six times, refused at t = 0 with a local error 7 times its share).
+CONTINUUM_RTOL = 1e-3
+
 
 
 @dataclass(frozen=True)
@@ -142,6 +148,7 @@ class RunConfig:
     reference: str = "auto"  # auto: the scene's reference; none: skip it (error is null)
     t_eval: Optional[np.ndarray] = None  # extra output times (dense output, fem_dual.integrate.dense)
     max_slabs: int = 5000  # --rtol: a run predicted to take more slabs stops (exit 3)
+    rtol_given: bool = True  # False: rtol is the default of the scene kind (CONTINUUM_RTOL)
     # what `create` took (timings.setup_s; a copy by dataclasses.replace keeps it)
     setup_s: float = field(default=0.0, compare=False)
 
@@ -257,7 +264,7 @@ class RunConfig:
     def create(cls, scene: Union[str, Scene], params: Optional[Mapping[str, object]] = None, *,
                T: Optional[Number] = None, cells: Optional[Number] = None,
                degree: Optional[Number] = None,
-               slabs: Number = 1, x0: Optional[Union[str, Sequence[float]]] = None,
+               slabs: Optional[Number] = None, x0: Optional[Union[str, Sequence[float]]] = None,
                v0: Optional[Union[str, Sequence[float]]] = None,
                out: Optional[Union[str, Path]] = None,
                petsc: Optional[Mapping[str, str]] = None,
@@ -272,12 +279,17 @@ class RunConfig:
 
         With `rtol` (and optionally `atol`) the slab lengths are chosen by the error estimate
         so that the estimated error stays within atol + rtol * scale (see
-        fem_dual.integrate.estimate); `slabs` must then be left at 1. `cells` and `degree`
+        fem_dual.integrate.estimate); `slabs` must then be left out or 1. A continuum scene
+        given neither takes rtol = CONTINUUM_RTOL; others take one slab. `cells` and `degree`
         left out are the defaults of the run's kind (`default_discretisation`)."""
         tic = time.perf_counter()
         scene = scene_of(scene, params)
         T_value = _horizon(scene, T)
         rtol_value = None if rtol is None else tolerance_value("rtol", rtol)
+        rtol_given = not (rtol is None and slabs is None and atol is None and scene.continuum)
+        if not rtol_given:
+            rtol_value = CONTINUUM_RTOL
+        slabs = 1 if slabs is None else slabs
         cells, degree = default_discretisation(rtol_value, cells, degree)
         cells_, degree_, slabs_ = _discretisation(cells, degree, slabs)
         x0_, v0_ = _start_state(scene, x0, v0, u0)
@@ -294,7 +306,7 @@ class RunConfig:
         rtol_, atol_ = _tolerances(rtol_value, atol, slabs, slabs_)
         config = cls(scene, T_value, cells_, degree_, slabs_, x0_, v0_, out_, petsc_, halvings,
                      superpose, staging, recovery, assembly, rtol_, atol_, base, coordinates,
-                     reference, times, budget)
+                     reference, times, budget, rtol_given)
         if check_petsc:
             config.check_petsc()
         object.__setattr__(config, "setup_s", time.perf_counter() - tic)  # (frozen)

@@ -64,7 +64,7 @@ def _add_problem_arguments(p: argparse.ArgumentParser, slabs_help: str) -> None:
     """The problem definition shared by `run` and `bench`: scene, horizon, parameters, state."""
     p.add_argument("scene", metavar="SCENE", help="a scene name (`fem-dual scenes` lists them)")
     p.add_argument("--T", help="final time (default: the scene's)")
-    p.add_argument("--slabs", default="1", help=slabs_help)
+    p.add_argument("--slabs", default=None, help=slabs_help)
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                    help="scene parameter (repeatable); matrices as a11,a12,... or a scalar")
     p.add_argument("--x0", help="initial position a,b,...")
@@ -77,7 +77,8 @@ def _add_problem_arguments(p: argparse.ArgumentParser, slabs_help: str) -> None:
 def _run(sub) -> None:
     """`run`: solve one scene."""
     r = sub.add_parser("run", help="solve one scene and compare it with its reference")
-    _add_problem_arguments(r, "number of equal time slabs (default 1)")
+    _add_problem_arguments(r, "number of equal time slabs (default 1; a continuum given "
+                           "neither --slabs nor --rtol takes --rtol 1e-3)")
     r.add_argument("--cells", help="time cells per slab (default 100; with --rtol 4)")
     r.add_argument("--degree", help="polynomial degree of the dual fields (default 2; with --rtol "
                    "from the tolerance: 3 at 1e-4, 4 at 1e-6, 5 at 1e-8, 6 at 1e-10)")
@@ -175,6 +176,7 @@ def _bench(sub) -> None:
     """`bench`: error against run time beside scipy's integrators."""
     b = sub.add_parser("bench", help="error against run time: fem-dual beside RK45, DOP853, Radau")
     _add_problem_arguments(b, "slabs of the fem-dual runs, a list to sweep (default 1)")
+    b.set_defaults(slabs="1")
     b.add_argument("--cells", default="2,4,8,16,32", help="cells per slab to sweep")
     b.add_argument("--degrees", default="2,3,4", help="degrees to sweep")
     b.add_argument("--repeats", default="3", help="timed repeats per configuration (median)")

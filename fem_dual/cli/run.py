@@ -100,8 +100,9 @@ def summary(result: RunResult) -> str:
                      "--staging off to disable)")
     tol = result.tolerance
     if tol.get("adaptive"):
+        which = "" if tol.get("given", True) else " (a continuum's default)"
         lines.append(f"  slabs   {len(result.slab_lengths)} chosen for rtol={tol['rtol']:g} "
-                     f"atol={tol['atol']:g} ({result.solver['rejected_slabs']} rejected)")
+                     f"atol={tol['atol']:g}{which} ({result.solver['rejected_slabs']} rejected)")
     elif result.solver.get("rejected_slabs"):
         lines.append(f"  slabs   {len(result.slab_lengths)} solved: "
                      f"{result.solver['rejected_slabs']} attempts were retried shorter")

@@ -409,6 +409,7 @@ class _Run:
             recovery=config.recovery, error_estimate=acc.estimate_max(),
             estimate=acc.estimate(),
             tolerance={"rtol": tol.rtol, "atol": tol.atol, "adaptive": tol.adaptive,
+                       "given": config.rtol_given,
                        "scale_x": weights.scale_x, "scale_v": weights.scale_v})
         result.output_slabs = None if self.xdmf is None else self.xdmf.slabs_written
         if acc.est_rows:

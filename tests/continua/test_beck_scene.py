@@ -37,6 +37,32 @@ def test_the_estimate_bounds_the_error_against_the_modes_of_the_semi_discrete_sy
     assert error >= tol / 100  # the cost follows the tolerance: not far below it
 
 
+def test_run_without_options_takes_the_continuum_default_tolerance(capsys):
+    """`fem-dual run beck` as typed: slab lengths chosen for --rtol 1e-3 (one slab of 100
+    cells, halved six times, cannot follow the spread of the beam's modes), the answer within
+    that of the exact motion of the semi-discrete system, and the JSON says the tolerance was
+    the default. --slabs keeps fixed slabs; particle scenes keep fixed slabs by default."""
+    import json
+
+    from fem_dual.cli import main
+
+    assert main(["run", "beck", "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    tol = data["tolerance"]
+    assert tol == {**tol, "rtol": 1e-3, "adaptive": True, "given": False}
+    scene = RunConfig.create("beck").scene
+    xT, vT = _modal_motion(scene.mass_matrix(), scene.stiffness_matrix(),
+                           np.asarray(data["x0"], float), np.asarray(data["v0"], float),
+                           data["T"])
+    error = max(np.abs(np.asarray(data["final"]["x"]) - xT).max(),
+                np.abs(np.asarray(data["final"]["v"]) - vT).max())
+    scale = max(tol["scale_x"], tol["scale_v"])
+    assert scale / 1e5 <= error <= data["error_estimate"] <= 10 * 1e-3 * scale
+    assert RunConfig.create("beck", slabs=2).tolerance.adaptive is False
+    assert RunConfig.create("curl3d").tolerance.adaptive is False
+    assert RunConfig.create("beck", rtol=1e-4).rtol_given
+
+
 @pytest.mark.parametrize("P", [20.05, 21.0])
 def test_near_and_past_the_flutter_load_the_modes_stay_well_conditioned(P):
     """Modes about to coalesce (20.05) or coalesced (21, growing) share one balanced block, so the
