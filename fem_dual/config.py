@@ -147,7 +147,9 @@ class RunConfig:
     coordinates: str = "auto"  # linear scenes: physical, modal, auto (see modal)
     reference: str = "auto"  # auto: the scene's reference; none: skip it (error is null)
     t_eval: Optional[np.ndarray] = None  # extra output times (dense output, fem_dual.integrate.dense)
-    max_slabs: int = 5000  # --rtol: a run predicted to take more slabs stops (exit 3)
+    # --rtol: a run predicted to take more slabs stops (exit 3); None: the default budget
+    # (fem_dual.integrate.budget: 5000 slabs, or time for linear slabs taken in chunks)
+    max_slabs: Optional[int] = None
     rtol_given: bool = True  # False: rtol is the default of the scene kind (CONTINUUM_RTOL)
     # what `create` took (timings.setup_s; a copy by dataclasses.replace keeps it)
     setup_s: float = field(default=0.0, compare=False)
@@ -273,7 +275,7 @@ class RunConfig:
                rtol: Optional[Number] = None, atol: Optional[Number] = None,
                base: str = "auto", coordinates: str = "auto", reference: str = "auto",
                t_eval: Optional[Union[str, Sequence[float]]] = None,
-               max_slabs: Number = 5000, u0: Optional[Union[str, Sequence[str]]] = None,
+               max_slabs: Optional[Number] = None, u0: Optional[Union[str, Sequence[str]]] = None,
                check_petsc: bool = True) -> "RunConfig":
         """Validate every input; raises InputError naming the first bad value.
 
@@ -297,7 +299,7 @@ class RunConfig:
         halvings = whole_number("max-halvings", max_halvings, minimum=0)
         if halvings > 30:
             raise InputError(f"max-halvings={max_halvings!r} is too large (at most 30)")
-        budget = whole_number("max-slabs", max_slabs, minimum=1)
+        budget = None if max_slabs is None else whole_number("max-slabs", max_slabs, minimum=1)
         _check_choices(scene, petsc_, superpose, staging, recovery, assembly, base, coordinates,
                        reference)
         times = None if t_eval is None else parse_times(t_eval, T_value)

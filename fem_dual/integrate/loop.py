@@ -20,6 +20,7 @@ from mpi4py import MPI
 from fem_dual import faults, native
 from fem_dual.config import STAGING_LIMIT, RunConfig
 from fem_dual.errors import SolveError, one_line
+from fem_dual.integrate.budget import SlabBudget
 from fem_dual.integrate.chunks import batch_step
 from fem_dual.integrate.conditioning import data_floor
 from fem_dual.integrate.controller import SlabSchedule, schedule_for, step_factor
@@ -38,9 +39,8 @@ from fem_dual.slab.values import VertexValues
 if TYPE_CHECKING:
     from fem_dual.integrate.simulation import Simulation
 
-__all__ = ["run_slabs", "BUDGET_WATCH"]
+__all__ = ["run_slabs"]
 
-BUDGET_WATCH = 8  # accepted slabs before the cost of the rest is predicted (--max-slabs)
 MAX_SUGGESTED_RTOL = 1e-2  # a data floor needing a looser --rtol than this: only a shorter --T
 
 
@@ -57,7 +57,8 @@ def run_slabs(sim: "Simulation", config: RunConfig, progress: bool = False,
     schedule, state = run.schedule, run.state
     failure: Optional[SolveError] = run.below_data_floor()
     while failure is None and not schedule.done():
-        failure = run.over_budget()  # --rtol: the cost predicted from the slabs so far
+        # --rtol: the cost predicted from the slabs so far (fem_dual.integrate.budget)
+        failure = run.budget.check(state, *schedule.current(), run.rate, run.acc)
         if failure is not None:
             break
         taken, failure = run.chunk()  # linear scenes: a chunk of equal slabs at once
@@ -147,6 +148,8 @@ class _Run:
         self.rejected: List[Dict[str, Any]] = []
         self.lost: Optional[np.ndarray] = None  # what the zero base drops on the slab solved
         self.failed_solves = 0  # linear slabs in a row whose solve failed
+        self.budget = SlabBudget(config, scene, sim.superposition is not None
+                                 and sim.companion.superposition is not None, self.comm)
 
     def _resolved(self, dt: float) -> None:
         """SolveError when a linear slab of length dt is under-resolved (`check_resolution`)."""
@@ -158,10 +161,13 @@ class _Run:
         (slabs taken, the failure that ends the run or None). Collective."""
         tic = time.perf_counter()
         state, schedule = self.state, self.schedule
+        accepted = state.k
         taken, failure = batch_step(self.sim, self.config, state, schedule, self.weights,
                                     self.bound, self.sinks,
                                     lambda: self._resolved(schedule.current()[1]))
         self.timings["solve_s"] += time.perf_counter() - tic
+        if taken:
+            self.budget.chunk_ran(tic, accepted)
         if taken and failure is None:
             state.batched += taken
             failure = _interruption(self.comm, schedule, state.k - 1, self.config.T)
@@ -276,24 +282,6 @@ class _Run:
                            f"for: {advice}")
         message = bcast(self.comm, message)
         return None if message is None else SolveError(message, slab=0)
-
-    def over_budget(self) -> Optional[SolveError]:
-        """With --rtol, once BUDGET_WATCH slabs are accepted: the failure that stops a run
-        whose remaining slabs, at the longest of the last ones, would exceed --max-slabs; None
-        while it stays within. The same on every rank (from the accepted lengths)."""
-        config, lengths = self.config, self.state.lengths
-        if config.rtol is None or len(lengths) < BUDGET_WATCH:
-            return None
-        t0, dt = self.schedule.current()
-        typical = max(max(lengths[-BUDGET_WATCH:]), dt)
-        predicted = len(lengths) + int(np.ceil((config.T - t0) / typical))
-        if predicted <= config.max_slabs:
-            return None
-        return SolveError(
-            f"rtol={config.rtol:g} would take {predicted:,} slabs at the length of the last "
-            f"ones ({typical:.3g}) to reach T = {config.T:g}, beyond the budget of "
-            f"{config.max_slabs:,} (--max-slabs); stopped at t = {t0:.6g} after {len(lengths)} "
-            f"slabs{_fast_modes(self.sim.scene, self.rate) or _BUDGET_ADVICE}", slab=len(lengths))
 
     def refusal(self, verdict: Verdict, t0: float, dt: float) -> SolveError:
         """The failure that ends the run at a slab that is neither accepted nor retried."""
@@ -426,6 +414,7 @@ class _Run:
         record["rejected_slabs"] = len(self.rejected)
         record["superposition"] = sim.superposition is not None
         record["batched_slabs"] = self.state.batched
+        record["budget"] = self.budget.record()
         record["estimates"] = self.acc.estimates
         record["companion_degree"] = sim.companion.degree
         companion = sim.companion.backend.record(sim.companion.prefix)
@@ -454,32 +443,6 @@ def _start_rate(scene, x0: np.ndarray, v0: np.ndarray) -> float:
         F, d = np.asarray(scene.force_numpy(x0), dtype=float), scene.mass_diagonal()
         a0 = F / d if d is not None else np.linalg.solve(scene.mass_matrix(), F)
     return motion_rate(x0, v0, a0)
-
-
-FAST_MODES = 100.0  # modes this many times faster than the slowest: a start state's, not the
-# motion's own (a continuum's start fields excite the fastest modes of its mesh)
-ZERO_SPEED = 1e-7  # speeds below this part of the fastest are round-off (a free body's)
-
-
-def _fast_modes(scene, rate: Optional[float]) -> str:
-    """Why a continuum's slabs are short, where it is the start state's fast modes: the slabs
-    follow the modes the start excites (`rate`, the fastest of them), and those are FAST_MODES
-    times the slowest mode or faster; "" otherwise (particles, the sparse path: no modes at
-    hand)."""
-    if rate is None or not scene.continuum or scene.sparse:
-        return ""
-    speeds = np.abs(scene.spectrum[0])
-    speeds = speeds[speeds > ZERO_SPEED * speeds.max(initial=0.0)]
-    slowest = float(speeds.min(initial=np.inf))
-    if not rate >= FAST_MODES * slowest:
-        return ""
-    return (f", since the start state excites modes up to |lambda| = {rate:.3g} "
-            f"({rate / slowest:.3g} times the slowest), which every slab must follow (a start "
-            "field's mismatch with the mesh excites its fastest modes): use a coarser mesh or a "
-            "start state with less in those modes, or raise --max-slabs")
-
-
-_BUDGET_ADVICE = ": loosen --rtol, shorten --T, or raise --max-slabs"
 
 
 def _advice(config: RunConfig) -> str:

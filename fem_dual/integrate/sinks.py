@@ -140,6 +140,9 @@ def _floats(*columns) -> zip:
     return zip(*(np.asarray(c, dtype=float).ravel().tolist() for c in columns))
 
 
+SLAB_RECORD_BYTES = 1200  # a slab's estimate and H_d records (two small dicts of floats)
+
+
 class Accumulator:
     """Vertex arrays of the whole run and their errors against the reference (rank 0 only)."""
 
@@ -164,6 +167,7 @@ class Accumulator:
         self.est_rows: List[np.ndarray] = []  # the estimate at every output time
         self.err_rows: List[np.ndarray] = []  # the reference error at every output time
         self._masks: Dict[tuple, np.ndarray] = {}
+        self.held = 0  # bytes of what the run holds for its result (about)
 
     def add(self, slab: AcceptedSlab) -> None:
         self.add_batch(SlabBatch.of(slab))
@@ -193,6 +197,10 @@ class Accumulator:
                                                            batch.local_weighted,
                                                            batch.global_weighted)]
         self.ham += [{"min": a, "max": b, "drift": c} for a, b, c in _floats(low, high, drift)]
+        # (the reference's error rows as many as the estimate's; two dicts a slab)
+        rows_held = rows.nbytes * (1 if self.flow is None else 2)
+        self.held += t.nbytes + x.nbytes + v.nbytes + rows_held + SLAB_RECORD_BYTES * len(
+            batch.t0)
 
     def _kept(self, shape: Tuple[int, int], first: bool) -> np.ndarray:
         """Which vertices (slabs, vertices) of a batch the run's arrays take: each junction
