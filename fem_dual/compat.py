@@ -259,8 +259,8 @@ def with_portable_fallback(compile_with: Callable[[Dict[str, Any]], Any]) -> Any
     """compile_with(jit_params()); where the C compiler fails with the processor's flags, once
     more without the precompiled Python header if there was one (a damaged file, which gcc
     refuses: fem_dual.jit_header), then (a compiler that rejects -march=native) with
-    DOLFINx's own flags, which every later compilation of the process then takes. Other
-    failures are raised as they are."""
+    DOLFINx's own flags, which every later compilation of the process then takes, unless
+    those fail as well. Other failures are raised as they are."""
     own, flags = processor_flags(), jit_flags()
 
     def attempt():
@@ -276,7 +276,14 @@ def with_portable_fallback(compile_with: Callable[[Dict[str, Any]], Any]) -> Any
     if done:
         return result
     _PORTABLE[0] = True
-    return compile_with(jit_params())
+    try:
+        return compile_with(jit_params())
+    except Exception:
+        # DOLFINx's flags fail too: the code is at fault (a user's constant of inf), not the
+        # processor's flags, which later compilations keep (one such failure took a process's
+        # every later module to -O2 without the processor's instructions, compiled anew)
+        _PORTABLE[0] = False
+        raise
 
 
 def equispaced_coordinates(msh) -> None:

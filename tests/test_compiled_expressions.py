@@ -272,3 +272,32 @@ def test_the_direct_value_numbering_generates_the_code_of_the_scan(monkeypatch):
     assert numberer._fem_dual_direct and not scanned  # (no operand needed the scan)
     monkeypatch.setattr(numberer, "get_node_symbols", scan)
     assert code() == direct
+
+
+def test_code_that_fails_with_every_flag_leaves_the_processor_flags_to_later_modules(
+        monkeypatch):
+    """A compilation that fails with DOLFINx's own flags too (a constant of inf in the C) is the
+    code's fault: the process keeps the processor's flags for what it compiles next. One that
+    only the processor's flags fail moves the process to DOLFINx's own."""
+    class CompileError(Exception):
+        pass
+
+    monkeypatch.setattr(compat, "_PORTABLE", [False])
+    monkeypatch.setattr(compat, "processor_flags", lambda: ["-O3", "-DTEST_CPU"])
+    monkeypatch.setattr(compat, "include_flags", lambda flags, cache_dir: [])
+    seen = []
+
+    def always(params):
+        seen.append(params["cffi_extra_compile_args"])
+        raise CompileError("gcc: 'inf' undeclared")
+    with pytest.raises(CompileError):
+        compat.with_portable_fallback(always)
+    assert seen[0] == ["-O3", "-DTEST_CPU"] and seen[-1] != seen[0]  # (DOLFINx's tried too)
+    assert compat._PORTABLE == [False] and compat.jit_flags() == ["-O3", "-DTEST_CPU"]
+
+    def processor_only(params):
+        if "-DTEST_CPU" in params["cffi_extra_compile_args"]:
+            raise CompileError("gcc: unrecognized -march")
+        return "built"
+    assert compat.with_portable_fallback(processor_only) == "built"
+    assert compat._PORTABLE == [True] and "-DTEST_CPU" not in compat.jit_flags()

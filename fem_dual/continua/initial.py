@@ -50,7 +50,26 @@ def field_expression(text: str, msh, parameters: Mapping[str, float]):
     value = parsed.ufl(ufl.SpatialCoordinate(msh), values)[0]
     if isinstance(value, ufl.constantvalue.ConstantValue):
         return float(value)
+    _finite_at_points(text, parsed, msh, {k: float(v) for k, v in parameters.items()})
     return value
+
+
+FINITE_SAMPLE = 512  # mesh points at which an initial field is evaluated before it is compiled
+
+
+def _finite_at_points(text: str, parsed, msh, values: Mapping[str, float]) -> None:
+    """InputError where the field is not finite at some of (about FINITE_SAMPLE of) the
+    mesh's cell midpoints, evaluated in float64 before FFCx compiles it: numbers beyond float64
+    (``1e308*x*10``) would become a constant inf in C that no compiler takes."""
+    gdim = msh.geometry.dim
+    # (the cells' midpoints: a field may be singular where no node or quadrature point lies)
+    points = msh.geometry.x[msh.geometry.dofmap.array.reshape(
+        msh.geometry.dofmap.num_nodes, -1), :gdim].mean(axis=1)
+    points = points[::max(1, len(points) // FINITE_SAMPLE)]
+    for point in points:
+        if not np.isfinite(parsed.numpy(point, values)[0]):
+            where = ", ".join(f"{c:g}" for c in point)
+            raise InputError(f"initial field {text[:60]!r} is not finite at ({where})")
 
 
 def jit_input(what: str, build):
