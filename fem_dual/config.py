@@ -31,10 +31,11 @@ REFUSE_RELATIVE = 1e-3
 # run is refused (the local errors are controlled; growth of the motion can still amplify them).
 ACCEPT_GLOBAL = 10.0
 
-# A continuum run given neither --rtol nor --slabs takes this --rtol (the fraction the acceptance
-# rule of fixed slabs asks): a mesh's modes spread over decades, and slabs of one length either
-# follow the fastest the start state excites or fail at the first slab (beck by default: 1 slab
-# of 100 cells, halved six times, refused at t = 0 with a local error 7 times its share).
+# A continuum run given neither --rtol nor --slabs takes this --rtol (with --atol, if given): a
+# mesh's modes spread over decades, and slabs of one length either follow the fastest the start
+# state excites or fail at the first slab (beck by default: 1 slab of 100 cells, halved six
+# times, refused at t = 0 with a local error 7 times its share). As any --rtol, the run is
+# refused only where its estimate exceeds ACCEPT_GLOBAL times the tolerance.
 CONTINUUM_RTOL = 1e-3
 
 
@@ -288,7 +289,7 @@ class RunConfig:
         scene = scene_of(scene, params)
         T_value = _horizon(scene, T)
         rtol_value = None if rtol is None else tolerance_value("rtol", rtol)
-        rtol_given = not (rtol is None and slabs is None and atol is None and scene.continuum)
+        rtol_given = not (rtol is None and slabs is None and scene.continuum)
         if not rtol_given:
             rtol_value = CONTINUUM_RTOL
         slabs = 1 if slabs is None else slabs

@@ -85,7 +85,7 @@ def _run(sub) -> None:
     r.add_argument("--max-slabs", default=None, help="with --rtol: a run predicted to need "
                    "more slabs than this (from the lengths of the last slabs) stops with the "
                    "figure, exit 3 (default 5000; a linear scene whose slabs run in chunks: "
-                   "beyond 5000 while the rest runs within 60 s and 512 MB at its pace)")
+                   "beyond 5000 while they fit in 60 s and 1 GB at its pace)")
     r.add_argument("--max-halvings", default="6", help="nonlinear scenes: a slab whose Newton "
                    "fails is retried halved, at most this many times (default 6)")
     r.add_argument("--superpose", default="auto", help="linear scenes: yes = every slab from "

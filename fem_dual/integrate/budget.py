@@ -7,16 +7,19 @@ computed, instead of computing for minutes.
 The budget is --max-slabs where the user gives it, and DEFAULT_MAX_SLABS slabs otherwise, except
 for a linear scene whose slab maps take its slabs in chunks (fem_dual.integrate.chunks): there a
 slab costs a few products with the maps once the lengths settle (Beck's column at 50 P2 elements,
-0.32 ms a slab), so the budget is time and memory. Once PACE_SLABS slabs have run in chunks, the
-slabs left must run within BUDGET_SECONDS at the pace since the first chunk, and their output
-(held until the run ends) fit in BUDGET_BYTES. A run whose first chunk has not come after
-PACE_WAIT slabs is held to the count. `fem-dual run beck --rtol 1e-4` is predicted at
-32,768 slabs (it takes 8,233, 3.7 s): over 5,000, it runs.
+0.32 ms a slab), so the budget is time and memory. Once a chunk of at least PACE_SLABS slabs has
+run, its pace (small chunks carry the maps' set-up) prices the slabs left: the run's slabs,
+those done and those predicted, must fit in BUDGET_SECONDS, and the memory of their output (held
+until the run ends, then copied into its result) in BUDGET_BYTES. A run whose chunks have not
+come after PACE_WAIT slabs is held to the count. `fem-dual run beck --rtol 1e-4` is predicted at
+32,768 slabs (it takes 8,233, 3.7 s): over 5,000, it runs. The time is the machine's: near the
+budget the same run may end on one machine and stop on another; --max-slabs makes the budget a
+count again.
 """
 from __future__ import annotations
 
 import time
-from typing import TYPE_CHECKING, Optional, Tuple
+from typing import TYPE_CHECKING, Optional
 
 import numpy as np
 
@@ -33,9 +36,11 @@ __all__ = ["SlabBudget", "BUDGET_WATCH", "BUDGET_SECONDS", "BUDGET_BYTES", "PACE
 BUDGET_WATCH = 8  # accepted slabs before the cost of the rest is predicted
 DEFAULT_MAX_SLABS = 5000  # the budget in slabs where --max-slabs is not given
 BUDGET_SECONDS = 60.0  # chunked linear slabs: the time the slabs left may take at their pace
-BUDGET_BYTES = 2**29  # chunked linear slabs: the output they may add (held until the end)
-PACE_SLABS = 32  # chunked slabs run before their pace is trusted
-PACE_WAIT = 512  # slabs a paced run may take one by one waiting for its first chunk
+BUDGET_BYTES = 2**30  # chunked linear slabs: the memory their output may take at its peak
+PEAK_COPIES = 2  # the output held to the end, and its copy in the run's result (measured: a
+# beck run at 65,536 slabs holding 500 MB of arrays peaked at 1.0 GB resident)
+PACE_SLABS = 64  # slabs of the chunk whose pace is trusted (smaller: the set-up dominates)
+PACE_WAIT = 512  # slabs a paced run may take waiting for such a chunk
 
 FAST_MODES = 100.0  # modes this many times faster than the slowest: a start state's, not the
 # motion's own (a continuum's start fields excite the fastest modes of its mesh)
@@ -51,19 +56,21 @@ class SlabBudget:
         self.slabs = DEFAULT_MAX_SLABS if config.max_slabs is None else config.max_slabs
         # (the chunk path needs the slab maps of a linear scene: `chunked`)
         self.paced = config.max_slabs is None and chunked and config.rtol is not None
-        self.first_chunk: Optional[Tuple[float, int]] = None  # (clock, slabs accepted) then
-        self.pace: Optional[float] = None  # seconds a slab since the first chunk (last check)
+        self.first_chunk: Optional[float] = None  # the clock when the first chunk began
+        self.pace: Optional[float] = None  # seconds a slab of the last chunk of PACE_SLABS
 
     def record(self) -> dict:
         """What the JSON's solver.budget says."""
         return {"max_slabs": self.slabs, "paced": self.paced, "seconds": BUDGET_SECONDS,
                 "bytes": BUDGET_BYTES, "pace_s": self.pace}
 
-    def chunk_ran(self, clock: float, accepted: int) -> None:
-        """A chunk of slabs ran from `clock` on (`accepted` slabs before it): the pace is
-        measured from the first one on."""
+    def chunk_ran(self, clock: float, slabs: int) -> None:
+        """A chunk of `slabs` slabs ran from `clock` to now (rank 0's figures decide)."""
+        now = time.perf_counter()
         if self.first_chunk is None:
-            self.first_chunk = (clock, accepted)
+            self.first_chunk = clock
+        if slabs >= PACE_SLABS:
+            self.pace = (now - clock) / slabs
 
     def check(self, state: "LoopState", t0: float, dt: float, rate: Optional[float],
               acc: Optional["Accumulator"]) -> Optional[SolveError]:
@@ -79,11 +86,10 @@ class SlabBudget:
             return None
         beyond = f"beyond the budget of {self.slabs:,} (--max-slabs)"
         if self.paced:
-            if self.first_chunk is None and len(lengths) <= PACE_WAIT:
+            paced = self.pace is not None  # (chunk sizes: the same on every rank)
+            if not paced and len(lengths) <= PACE_WAIT:
                 return None  # (a chunk first: its pace decides)
-            if self.first_chunk is not None and len(lengths) - self.first_chunk[1] < PACE_SLABS:
-                return None  # (more of it first)
-            if self.first_chunk is not None:  # (else no chunk came: the count decides)
+            if paced:  # (else no such chunk came: the count decides; rank 0's clock decides)
                 over = bcast(self.comm, self._over_time(predicted - len(lengths),
                                                         len(lengths), acc)
                              if self.comm.rank == 0 else None)
@@ -97,16 +103,14 @@ class SlabBudget:
             f"t = {t0:.6g} after {len(lengths)} slabs{why}", slab=len(lengths))
 
     def _over_time(self, left: int, accepted: int, acc: "Accumulator") -> Optional[str]:
-        """How the `left` slabs exceed the time or the memory budget at the pace since the
-        first chunk (`accepted` slabs so far; rank 0), None where they do not."""
-        clock, before = self.first_chunk
-        self.pace = (time.perf_counter() - clock) / max(accepted - before, 1)
-        seconds = left * self.pace
-        held = left * acc.held / max(accepted, 1)
+        """How the run's slabs, `accepted` done and `left` predicted, exceed the time or the
+        memory budget at the pace of the last large chunk (rank 0), None where they do not."""
+        seconds = time.perf_counter() - self.first_chunk + left * self.pace
+        held = PEAK_COPIES * acc.held * (1 + left / max(accepted, 1))
         if seconds <= BUDGET_SECONDS and held <= BUDGET_BYTES:
             return None
-        return (f"at the pace of the slabs so far ({1e3 * self.pace:.3g} ms a slab) "
-                f"{seconds:,.0f} s and {held / 2**20:,.0f} MB of output more, beyond "
+        return (f"at the pace of its last chunk ({1e3 * self.pace:.3g} ms a slab) its slabs "
+                f"would take {seconds:,.0f} s and {held / 2**20:,.0f} MB for their output, beyond "
                 f"{BUDGET_SECONDS:g} s or {BUDGET_BYTES / 2**20:g} MB")
 
 

@@ -161,13 +161,12 @@ class _Run:
         (slabs taken, the failure that ends the run or None). Collective."""
         tic = time.perf_counter()
         state, schedule = self.state, self.schedule
-        accepted = state.k
         taken, failure = batch_step(self.sim, self.config, state, schedule, self.weights,
                                     self.bound, self.sinks,
                                     lambda: self._resolved(schedule.current()[1]))
         self.timings["solve_s"] += time.perf_counter() - tic
         if taken:
-            self.budget.chunk_ran(tic, accepted)
+            self.budget.chunk_ran(tic, taken)
         if taken and failure is None:
             state.batched += taken
             failure = _interruption(self.comm, schedule, state.k - 1, self.config.T)

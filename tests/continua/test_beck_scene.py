@@ -61,6 +61,9 @@ def test_run_without_options_takes_the_continuum_default_tolerance(capsys):
     assert RunConfig.create("beck", slabs=2).tolerance.adaptive is False
     assert RunConfig.create("curl3d").tolerance.adaptive is False
     assert RunConfig.create("beck", rtol=1e-4).rtol_given
+    beside = RunConfig.create("beck", atol=1e-9)  # (--atol joins the default)
+    assert beside.tolerance == type(beside.tolerance)(1e-3, 1e-9, True)
+    assert not beside.rtol_given
 
 
 @pytest.mark.parametrize("P", [20.05, 21.0])

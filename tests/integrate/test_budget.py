@@ -95,7 +95,7 @@ def test_chunked_linear_slabs_are_held_to_time_not_to_a_count(capsys, monkeypatc
     at its default the budget is time (and memory) at the measured pace, and the run ends ok
     within its estimate; --max-slabs given keeps the count. (The time allowed is made
     unlimited here: 15 s predicted against 60 s on this machine, a slower one must not fail
-    the test; the memory, 256 MB predicted against 512 MB, is the machine's no matter.)"""
+    the test; the memory, 0.9 GB predicted against 1 GB, is the machine's no matter.)"""
     monkeypatch.setattr("fem_dual.integrate.budget.BUDGET_SECONDS", 1e9)
     assert main(["run", "beck", "--rtol", "1e-4", "--json"]) == 0
     data = json.loads(capsys.readouterr().out)
@@ -110,14 +110,14 @@ def test_chunked_linear_slabs_are_held_to_time_not_to_a_count(capsys, monkeypatc
 
 
 def test_chunked_slabs_beyond_their_time_stop_with_the_pace(capsys):
-    """--rtol 3e-6 on the same column: predicted at 262,145 slabs at about half a millisecond
-    (144-182 s measured), refused once its first chunks have shown their pace, with the time
-    and the output it would take. (At 1e-6 the first chunk comes after 357 slabs or, with
+    """--rtol 3e-6 on the same column: predicted at 262,144 slabs at about a millisecond (281 s
+    measured), refused once a chunk of 64 slabs has shown its pace, with the time and the
+    memory it would take. (At 1e-6 the first chunk comes after 357 slabs or, with
     other BLAS threads, not within PACE_WAIT: the count refuses then.)"""
     assert main(["run", "beck", "--rtol", "3e-6", "--json"]) == 3
     captured = capsys.readouterr()
     assert captured.err.count("\n") == 1
-    assert "ms a slab" in captured.err and "beyond 60 s or 512 MB" in captured.err
+    assert "ms a slab" in captured.err and "beyond 60 s or 1024 MB" in captured.err
     assert _predicted_slabs(captured.err) > 100_000
     data = json.loads(captured.out)
     assert data["status"] == "failed" and len(data["slab_lengths"]) < 5000
