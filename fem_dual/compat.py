@@ -305,7 +305,7 @@ def equispaced_coordinates(msh) -> None:
 
 def _settled(form_or_expr) -> None:
     """equispaced_coordinates on every domain of a form or expression (a form's taken from its
-    integrals and arguments, so that this does not number them: _analysed_unsettled)."""
+    integrals and arguments, so that this does not number them: _analysed)."""
     if isinstance(form_or_expr, ufl.Form):
         terminals = form_or_expr.arguments() + form_or_expr.coefficients()
         domains = [itg.ufl_domain() for itg in form_or_expr.integrals()] + [
@@ -316,11 +316,13 @@ def _settled(form_or_expr) -> None:
         equispaced_coordinates(domain)
 
 
-def _analysed_unsettled(form: ufl.Form) -> bool:
-    """Whether `form` numbered its domains (for its signature) before one was settled: the
-    numbering keeps them under their former hash."""
-    numbering = getattr(form, "_domain_numbering", None)
-    return numbering is not None and any(d not in numbering for d in form.ufl_domains())
+def _analysed(form: ufl.Form) -> bool:
+    """Whether `form` numbered its domains (for its signature) already: perhaps before one was
+    settled, under the domain's former hash. Which cannot be told: the domain is changed in
+    place, and a lookup of it in the numbering found it under its former hash for some of
+    Python's hash seeds (a form key test failed for 4 of 8 seeds), so a numbered form is
+    made again."""
+    return getattr(form, "_domain_numbering", None) is not None
 
 
 def compile_form(form: ufl.Form) -> fem.FormMetaClass:
@@ -329,7 +331,7 @@ def compile_form(form: ufl.Form) -> fem.FormMetaClass:
     form that numbered its domains before, for its signature, is made again from its
     integrals)."""
     _settled(form)
-    if _analysed_unsettled(form):
+    if _analysed(form):
         form = ufl.Form(form.integrals())
     return with_portable_fallback(lambda params: fem.form(form, jit_params=params))
 
