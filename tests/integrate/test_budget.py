@@ -95,7 +95,7 @@ def test_chunked_linear_slabs_are_held_to_time_not_to_a_count(capsys, monkeypatc
     at its default the budget is time (and memory) at the measured pace, and the run ends ok
     within its estimate; --max-slabs given keeps the count. (The time allowed is made
     unlimited here: 15 s predicted against 60 s on this machine, a slower one must not fail
-    the test; the memory, 0.9 GB predicted against 1 GB, is the machine's no matter.)"""
+    the test; the memory, 0.5 GB predicted against 1 GB, is the machine's no matter.)"""
     monkeypatch.setattr("fem_dual.integrate.budget.BUDGET_SECONDS", 1e9)
     assert main(["run", "beck", "--rtol", "1e-4", "--json"]) == 0
     data = json.loads(capsys.readouterr().out)
